@@ -1,0 +1,3 @@
+"""steadytouch host tooling: references, transports, analysis."""
+
+from sensation_core import VERSION as __version__  # noqa: F401

@@ -1,0 +1,343 @@
+"""sensation_core: integer-only controller of Akhtar et al., Sci. Robot. 2018.
+
+Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every
+intermediate value stays below 2**30 in magnitude, so a 32-bit MicroPython port
+never promotes to a heap-allocated long int, and `Controller.update` allocates
+nothing. Formats and error bounds: docs/fixed-point.md; rules: docs/controller.md.
+
+Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
+"""
+
+try:
+    from micropython import const
+except ImportError:  # CPython
+
+    def const(x):
+        return x
+
+
+VERSION = "0.1.0"
+
+# ---- hard envelope of the arithmetic (no configuration may exceed these) ----
+I_LIMIT_UA = const(20000)  # largest i_max_ua; i**2 < 2**29
+T_LIMIT_US = const(8000)  # largest t_max_us; sqrt(T*T0) < 2**13
+Q_LIMIT_PC = const(33554432)  # 2**25 pC = 33.5 uC, largest q_max_pc
+RP_MIN_OHM = const(500)  # valid measured Rp range; outside it -> fault
+RP_MAX_OHM = const(200000)
+X_STAR_MIN_OHM = const(-20000)  # x* in [X_STAR_MIN_OHM, 0]
+VP_LIMIT_MV = const(1000000)  # rp_from_vp: larger Vp reads as "electrode off"
+RP_INVALID = const(-1)  # rp_from_vp result for a non-positive current
+RP_OVER = const(1073741823)  # rp_from_vp result for Vp beyond VP_LIMIT_MV
+
+# ---- status bit flags (Controller.status) ----
+ST_OK = const(0)
+ST_I_MIN = const(0x001)  # I held at i_min (T solved from mE where possible)
+ST_I_MAX = const(0x002)  # I held at i_max (mE not kept: safety)
+ST_T_MIN = const(0x004)  # T held at t_min, I solved from mE
+ST_T_MAX = const(0x008)  # T held at t_max, I solved from mE
+ST_Q_MAX = const(0x010)  # charge limited to q_max
+ST_RP_LOW = const(0x020)  # fault: Rp below RP_MIN_OHM (or at/below x*)
+ST_RP_HIGH = const(0x040)  # fault: Rp above RP_MAX_OHM (electrode off)
+ST_Q_NONPOS = const(0x080)  # fault: estimated charge <= 0
+ST_UNCALIBRATED = const(0x100)  # fault: update() before calibrate()
+ST_BOUND_MASK = const(0x01F)
+ST_FAULT_MASK = const(0x1E0)
+
+# ---- controller modes (Controller.set_mode) ----
+MODE_OPEN_LOOP = const(0)  # fixed I0, T0 (for comparison); faults still stop
+MODE_AKHTAR = const(4)  # the paper's Eqs. 1-4 (default)
+MODES = (MODE_OPEN_LOOP, MODE_AKHTAR)
+
+_M11 = const(0x7FF)
+_M15 = const(0x7FFF)
+_SAT15 = const(0x8000)  # "at least 2**15": larger than any bound
+_SAT30 = const(0x3FFFFFFF)
+_MQ_CAP = const(0x1FFFFFFF)
+
+
+def _muldiv(a, b, c, fbits, cap):
+    """floor(a * b * 2**fbits / c), or cap + 1 if that exceeds cap.
+
+    Needs 0 <= a < 2**30, 0 <= b <= 2**18, 256 <= c <= 2**18, 0 <= fbits <= 11,
+    0 <= cap < 2**29. Long division over 11-bit limbs of a: every partial value
+    is < 2**30.
+    """
+    x = (a >> 22) * b
+    q = x // c
+    r = x - q * c
+    if q > cap >> (22 + fbits):
+        return cap + 1
+    x = (r << 11) + ((a >> 11) & _M11) * b
+    d = x // c
+    q = (q << 11) + d
+    r = x - d * c
+    if q > cap >> (11 + fbits):
+        return cap + 1
+    x = (r << 11) + (a & _M11) * b
+    d = x // c
+    q = (q << 11) + d
+    r = x - d * c
+    if q > cap >> fbits:
+        return cap + 1
+    if fbits:
+        q = (q << fbits) + (r << fbits) // c
+        if q > cap:
+            return cap + 1
+    return q
+
+
+def _div2(hi, lo, dv, rnd):
+    """(hi * 2**15 + lo) / dv, floored (rnd=0) or rounded half up (rnd=1).
+
+    Needs 0 <= lo < 2**15, 1 <= dv <= 2**29. Returns _SAT15 when the quotient
+    is >= 2**15. Restoring division, one bit per step: r < dv, so 2r+1 < 2**30.
+    """
+    if hi >= dv:
+        return _SAT15
+    r = hi
+    q = 0
+    bit = 0x4000
+    while bit:
+        r = r + r
+        if lo & bit:
+            r += 1
+        q = q + q
+        if r >= dv:
+            r -= dv
+            q += 1
+        bit >>= 1
+    if rnd and r + r >= dv:
+        q += 1
+    return q
+
+
+def _div_small(hi, lo, dv):
+    """floor((hi * 2**15 + lo) / dv) for 1 <= dv < 2**15; _SAT30 if >= 2**30."""
+    q = hi // dv
+    if q >= _SAT15:
+        return _SAT30
+    r = hi - q * dv
+    return (q << 15) + ((r << 15) + lo) // dv
+
+
+def _isqrt_round(n):
+    """sqrt(n) rounded to nearest, for 0 <= n < 2**30 (digit-by-digit)."""
+    r = 0
+    b = 0x10000000
+    while b > n:
+        b >>= 2
+    while b:
+        if n >= r + b:
+            n -= r + b
+            r = (r >> 1) + b
+        else:
+            r >>= 1
+        b >>= 2
+    if n > r:  # n is now N - r*r; N >= (r + 1/2)**2  <=>  N - r*r > r
+        r += 1
+    return r
+
+
+def _t_from_qf(qf, i0, t0):
+    """round(Q^2 / mE) with Q = qf / 16 pC, mE = i0^2 t0; _SAT15 if huge.
+
+    v = Q / i0 (= sqrt(T * t0)) in Q.16; T = v^2 / t0.
+    """
+    q1 = qf // i0
+    if q1 >= 0x20000:  # v >= 2**13 -> T >= 2**26 / t0 > T_LIMIT_US
+        return _SAT15
+    v = (q1 << 12) + ((qf - q1 * i0) << 12) // i0  # < 2**29
+    h = v >> 15
+    lo = v & _M15
+    sq = ((h * h) << 1) + ((h * lo + ((lo * lo) >> 16)) >> 13)  # v^2 / 2**29
+    return (sq + (t0 << 2)) // (t0 << 3)
+
+
+def _check(name, v, lo, hi):
+    if not (lo <= v <= hi):
+        raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
+
+
+def rp_from_vp(vp_mv, i_ua):
+    """Peak resistance in ohm from peak voltage (mV) and current (uA), rounded.
+
+    Returns RP_INVALID for i_ua <= 0 or vp_mv < 0 (update() faults on it) and
+    RP_OVER for vp_mv > VP_LIMIT_MV (update() reads it as electrode off).
+    """
+    if i_ua <= 0 or vp_mv < 0:
+        return RP_INVALID
+    if vp_mv > VP_LIMIT_MV:
+        return RP_OVER
+    return (vp_mv * 1000 + (i_ua >> 1)) // i_ua
+
+
+class Controller:
+    """Constant-sensation controller for one electrode channel.
+
+    c = Controller(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
+    c.calibrate(i0_ua, t0_us, rp0_ohm, x_star_ohm, y_star_pc)
+    status = c.update(rp_ohm)   # -> c.i_ua, c.t_us for the next pulse
+    """
+
+    def __init__(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
+        _check("i_max_ua", i_max_ua, 1, I_LIMIT_UA)
+        _check("i_min_ua", i_min_ua, 1, i_max_ua)
+        _check("t_max_us", t_max_us, 1, T_LIMIT_US)
+        _check("t_min_us", t_min_us, 1, t_max_us)
+        _check("q_max_pc", q_max_pc, i_min_ua * t_min_us, Q_LIMIT_PC)
+        self.i_min_ua = i_min_ua
+        self.i_max_ua = i_max_ua
+        self.t_min_us = t_min_us
+        self.t_max_us = t_max_us
+        self.q_max_pc = q_max_pc
+        self.mode = MODE_AKHTAR
+        self.i_ua = 0
+        self.t_us = 0
+        self.status = ST_UNCALIBRATED
+        self.rp_ohm = 0  # last Rp given to update()
+        self.me_ua2ms = 0  # mE in uA^2*ms (= uA^2*us / 1000), floored
+        self.mq_target_fc_per_ohm = 0  # target mQ in fC/ohm (= 1e-3 pC/ohm)
+        self.mq_last_fc_per_ohm = 0  # mQ of the pulse Rp was measured on
+        self.calibrated = False
+        self.i0_ua = 0
+        self.t0_us = 0
+        self.rp0_ohm = 0
+        self.x_star_ohm = 0
+        self.y_star_pc = 0
+        self._eh = 0  # mE = _eh * 2**15 + _el   (uA^2 us)
+        self._el = 0
+        self._e16h = 0  # 16 mE = _e16h * 2**15 + _e16l
+        self._e16l = 0
+        self._a = 0  # Q0 - y*  (pC)
+        self._d0 = 1  # Rp0 - x*  (ohm)
+        self._y16 = 0  # 16 y*
+        self._qcap = 0  # 16 q_max
+        self._pcap = 0  # 16 (q_max - y*)
+
+    def calibrate(self, i0_ua, t0_us, rp0_ohm, x_star_ohm, y_star_pc):
+        """Set mE and mQ from a first pulse (i0, t0) that felt right, Rp0 on it.
+
+        Raises ValueError (nothing changed) when an input is out of range. The
+        next pulse is (i0, t0), which is also what the law gives at Rp0.
+        """
+        _check("i0_ua", i0_ua, self.i_min_ua, self.i_max_ua)
+        _check("t0_us", t0_us, self.t_min_us, self.t_max_us)
+        q0 = i0_ua * t0_us
+        _check("i0_ua*t0_us", q0, 1, self.q_max_pc)
+        _check("rp0_ohm", rp0_ohm, RP_MIN_OHM, RP_MAX_OHM)
+        _check("x_star_ohm", x_star_ohm, X_STAR_MIN_OHM, 0)
+        _check("y_star_pc", y_star_pc, 0, q0 - 1)
+        i2 = i0_ua * i0_ua
+        p = (i2 & _M15) * t0_us
+        eh = (i2 >> 15) * t0_us + (p >> 15)
+        el = p & _M15
+        self._eh = eh
+        self._el = el
+        self._e16h = (eh << 4) + (el >> 11)
+        self._e16l = (el << 4) & _M15
+        self._a = q0 - y_star_pc
+        self._d0 = rp0_ohm - x_star_ohm
+        self._y16 = y_star_pc << 4
+        self._qcap = self.q_max_pc << 4
+        self._pcap = (self.q_max_pc - y_star_pc) << 4
+        self.i0_ua = i0_ua
+        self.t0_us = t0_us
+        self.rp0_ohm = rp0_ohm
+        self.x_star_ohm = x_star_ohm
+        self.y_star_pc = y_star_pc
+        self.me_ua2ms = _div_small(eh, el, 1000)
+        self.mq_target_fc_per_ohm = _muldiv(self._a, 1000, self._d0, 0, _MQ_CAP)
+        self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
+        self.rp_ohm = rp0_ohm
+        self.i_ua = i0_ua
+        self.t_us = t0_us
+        self.status = ST_OK
+        self.calibrated = True
+
+    def set_mode(self, mode):
+        """Select MODE_AKHTAR (default) or MODE_OPEN_LOOP; ValueError otherwise."""
+        if mode != MODE_AKHTAR and mode != MODE_OPEN_LOOP:
+            raise ValueError("mode=%d not supported" % mode)
+        self.mode = mode
+
+    def stop(self, status):
+        """Next pulse: none (i_ua = t_us = 0), with the given fault status."""
+        self.i_ua = 0
+        self.t_us = 0
+        self.status = status
+        return status
+
+    def update(self, rp_ohm):
+        """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status."""
+        if not self.calibrated:
+            return self.stop(ST_UNCALIBRATED)
+        self.rp_ohm = rp_ohm
+        if rp_ohm < RP_MIN_OHM:  # also covers Rp <= x*, as x* <= 0
+            self.mq_last_fc_per_ohm = 0
+            return self.stop(ST_RP_LOW)
+        if rp_ohm > RP_MAX_OHM:
+            self.mq_last_fc_per_ohm = 0
+            return self.stop(ST_RP_HIGH)
+        d = rp_ohm - self.x_star_ohm
+        # mQ of the pulse this Rp was measured on (telemetry)
+        if self.i_ua > 0:
+            n = self.i_ua * self.t_us - self.y_star_pc
+            if n >= 0:
+                self.mq_last_fc_per_ohm = _muldiv(n, 1000, d, 0, _MQ_CAP)
+            else:
+                self.mq_last_fc_per_ohm = -_muldiv(-n, 1000, d, 0, _MQ_CAP)
+        else:
+            self.mq_last_fc_per_ohm = 0
+        if self.mode == MODE_OPEN_LOOP:
+            self.i_ua = self.i0_ua
+            self.t_us = self.t0_us
+            self.status = ST_OK
+            return ST_OK
+        # Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max
+        qf = self._y16 + _muldiv(self._a, d, self._d0, 4, self._pcap)
+        if qf <= 0:
+            return self.stop(ST_Q_NONPOS)
+        st = ST_OK
+        if qf > self._qcap:
+            qf = self._qcap
+            st = ST_Q_MAX
+        # Eq. 4: I = mE / Q, T = Q^2 / mE
+        i = _div2(self._e16h, self._e16l, qf, 1)
+        t = _t_from_qf(qf, self.i0_ua, self.t0_us)
+        t_min = self.t_min_us
+        t_max = self.t_max_us
+        # duration bounds: hold T, solve I from mE (Discussion)
+        if t > t_max:
+            t = t_max
+            i = _isqrt_round(_div_small(self._eh, self._el, t_max))
+            st |= ST_T_MAX
+        elif t < t_min:
+            t = t_min
+            i = _isqrt_round(_div_small(self._eh, self._el, t_min))
+            st |= ST_T_MIN
+        # current bounds: floor holds I and solves T; ceiling is safety (no mE)
+        if i < self.i_min_ua:
+            i = self.i_min_ua
+            st |= ST_I_MIN
+            t = _div2(self._eh, self._el, i * i, 1)
+            if t > t_max:
+                t = t_max
+                st |= ST_T_MAX
+            elif t < t_min:
+                t = t_min
+                st |= ST_T_MIN
+        elif i > self.i_max_ua:
+            i = self.i_max_ua
+            st |= ST_I_MAX
+        # charge ceiling (safety): shorten the pulse, then lower the current
+        q_max = self.q_max_pc
+        if i * t > q_max:
+            st |= ST_Q_MAX
+            t = q_max // i
+            if t < t_min:
+                t = t_min
+                i = q_max // t_min
+        self.i_ua = i
+        self.t_us = t
+        self.status = st
+        return st

