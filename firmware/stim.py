@@ -1,0 +1,547 @@
+# steadytouch firmware core: the deadline-scheduled stimulation frame, the
+# safety supervisor and the command handler. Hardware is injected (a Board with
+# the interface documented in docs/hardware.md), so this module runs unchanged
+# on the rp2 and in the MicroPython unix VM with the simulated board.
+#
+# Every firmware section of the frame runs between heap_lock()/heap_unlock()
+# (on the device too): it allocates nothing, and large function frames go on
+# the C stack instead of the heap. Board calls sit between those sections.
+import sensation_core as sc
+import hid_protocol as hp
+
+try:
+    import micropython
+
+    _lock = micropython.heap_lock
+    _unlock = micropython.heap_unlock
+    const = micropython.const
+except ImportError:  # CPython: no heap lock
+
+    def _lock():
+        pass
+
+    def _unlock():
+        pass
+
+    def const(x):
+        return x
+
+
+FW_VERSION = (0, 1, 0)
+_MAX_CMDS_PER_FRAME = const(4)
+RATE_MIN_HZ = const(10)
+RATE_MAX_HZ = const(100)
+KEEPALIVE_MIN_MS = const(50)
+KEEPALIVE_MAX_MS = const(10000)
+
+
+class Channel:
+    """State of one electrode channel: its controller and its supervisor."""
+
+    def __init__(self, ch, lim):
+        self.ch = ch
+        self.ctl = sc.Controller(lim[0], lim[1], lim[2], lim[3], lim[4])
+        self.armed = False
+        self.stop = hp.STOP_IDLE
+        self.have_cal = False
+        self.i0 = 0
+        self.t0 = 0
+        self.x = 0
+        self.y = 0
+        self.calibrating = False
+        self.i = 0  # pulse for this frame (0: none)
+        self.t = 0
+        self.di = 0  # pulse delivered this frame (telemetry)
+        self.dt = 0
+        self.vp = 0
+        self.rp = 0
+        self.held = False
+        self.pi = 0  # the held proposal
+        self.pt = 0
+
+
+class Stimulator:
+    """The on-device loop. `board` is the hardware, `clock` the tick source."""
+
+    def __init__(self, board, clock, cfg, n_channels=None, rate_hz=None):
+        self.board = board
+        self.clock = clock
+        self.hard_i = cfg.HARD_I_MAX_UA
+        self.hard_t = cfg.HARD_T_MAX_US
+        self.hard_q = cfg.HARD_Q_MAX_PC
+        self.compliance_mv = cfg.COMPLIANCE_MV
+        self.vp_off_mv = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
+        self.board_name = cfg.BOARD_NAME
+        self.uv_per_count = cfg.VMON_UV_PER_COUNT
+        if not (cfg.HARD_I_MAX_UA <= sc.I_LIMIT_UA and cfg.HARD_T_MAX_US <= sc.T_LIMIT_US
+                and cfg.HARD_Q_MAX_PC <= sc.Q_LIMIT_PC and cfg.COMPLIANCE_MV <= sc.VP_LIMIT_MV):
+            raise ValueError("board config hard limits exceed the core's envelope (docs/controller.md)")
+        n = n_channels or cfg.N_CHANNELS
+        if not 1 <= n <= 4 or n > board.n_channels:
+            raise ValueError("n_channels=%d out of range [1, %d]" % (n, min(4, board.n_channels)))
+        self.n = n
+        lim = [min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA), cfg.HARD_I_MAX_UA,
+               min(cfg.T_MIN_US, cfg.HARD_T_MAX_US), cfg.HARD_T_MAX_US, cfg.HARD_Q_MAX_PC]
+        self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
+        self.chans = [Channel(k, lim) for k in range(n)]
+        self.mode = sc.MODE_AKHTAR
+        self.rate_hz = 0
+        self.period_us = 0
+        self.set_rate(rate_hz or cfg.RATE_HZ)
+        self.seq = 0
+        self.frames = 0
+        self.overruns = 0
+        self.loop_us = 0
+        self.frame_t = 0
+        self.keepalive_ms = 0
+        self.last_host = clock.ticks_us()
+        self.tx = bytearray(hp.REPORT_LEN)
+        self.rx = bytearray(hp.REPORT_LEN)
+        self.acks = 0
+        self.n_cmds = 0
+        self.locked = 0
+        self.started = False
+        self.deadline = 0
+        self.errors = 0
+        self.last_error = None
+
+    def set_rate(self, hz):
+        self.rate_hz = hz
+        self.period_us = 1000000 // hz
+
+    # ------------------------------------------------------------------ loop
+    def run(self, frames=-1):
+        """Deadline-based frames at rate_hz; frames < 0 runs forever."""
+        clk = self.clock
+        if not self.started:  # later calls continue on the same grid of deadlines
+            self.deadline = clk.ticks_us()
+            self.started = True
+        deadline = self.deadline
+        while frames != 0:
+            wait = clk.ticks_diff(deadline, clk.ticks_us())
+            if wait > 0:
+                clk.sleep_us(wait)
+            start = clk.ticks_us()
+            try:
+                self.frame(deadline)
+            except Exception as e:  # a firmware error: stop every channel, keep reporting
+                if self.locked:
+                    self.locked = 0
+                    _unlock()
+                self.errors += 1
+                self.last_error = e
+                self.stop_all(hp.STOP_INTERNAL)
+            end = clk.ticks_us()
+            self.loop_us = clk.ticks_diff(end, start)
+            deadline = clk.ticks_add(deadline, self.period_us)
+            if clk.ticks_diff(end, deadline) >= 0:  # missed the next deadline
+                self.overruns += 1
+                while clk.ticks_diff(end, deadline) >= 0:  # skip, keep the phase
+                    deadline = clk.ticks_add(deadline, self.period_us)
+            self.deadline = deadline
+            if frames > 0:
+                frames -= 1
+
+    def frame(self, now):
+        """One frame: pulse, measure and control every channel; serve commands."""
+        board = self.board
+        self.frame_t = now & 0x3FFFFFFF
+        board.feed_watchdog()
+        k = 0
+        while k < self.n:
+            c = self.chans[k]
+            _lock()
+            self.locked = 1
+            ok = self._pre_pulse(c)
+            self.locked = 0
+            _unlock()
+            n = board.fire(k, c.t) if ok else 0
+            _lock()
+            self.locked = 1
+            self._post_pulse(c, self._peak_mv(board.adc[k], n), now)
+            self._encode_telemetry(c)
+            self.locked = 0
+            _unlock()
+            if c.armed:
+                board.set_amplitude(k, c.i)  # settles during the rest of the frame
+            else:
+                board.stop(k)
+            board.send(self.tx)
+            k += 1
+        m = 0
+        while m < _MAX_CMDS_PER_FRAME and board.recv(self.rx):
+            _lock()
+            self.locked = 1
+            self.handle(self.rx, now)
+            self.locked = 0
+            _unlock()
+            board.send(self.tx)
+            m += 1
+        if m:  # outputs follow the commands at once
+            self.sync_outputs()
+        if self.keepalive_ms:
+            _lock()
+            self.locked = 1
+            self._check_keepalive(now)
+            self.locked = 0
+            _unlock()
+        self.frames += 1
+
+    # -------------------------------------------------------------- safety
+    def _latch(self, c, reason):
+        c.armed = False
+        c.calibrating = False
+        c.held = False
+        c.stop = reason
+        c.i = 0
+        c.t = 0
+
+    def _pre_pulse(self, c):
+        """Last check before the gate opens: hard limits, independent of the controller."""
+        c.di = 0
+        c.dt = 0
+        if not c.armed or c.i <= 0:
+            return False
+        if c.i > self.hard_i or c.t > self.hard_t or c.t <= 0 or c.i * c.t > self.hard_q:
+            self._latch(c, hp.STOP_LIMIT)
+            return False
+        c.di = c.i
+        c.dt = c.t
+        return True
+
+    def _peak_mv(self, buf, n):
+        """Peak of the captured pulse in mV: the largest median of 3 neighbouring
+        samples, so a single-sample spike cannot set it. Fewer than 3 samples:
+        the smallest (a low reading can only lower the charge)."""
+        if n <= 0:
+            return 0
+        if n < 3:
+            v = buf[0]
+            if n == 2 and buf[1] < v:
+                v = buf[1]
+            return v * self.uv_per_count // 1000
+        best = 0
+        a = buf[0]
+        b = buf[1]
+        k = 2
+        while k < n:
+            x = buf[k]
+            if a > b:
+                lo = b
+                hi = a
+            else:
+                lo = a
+                hi = b
+            if x >= hi:
+                m = hi
+            elif x <= lo:
+                m = lo
+            else:
+                m = x
+            if m > best:
+                best = m
+            a = b
+            b = x
+            k += 1
+        return best * self.uv_per_count // 1000
+
+    def _post_pulse(self, c, vp, now):
+        c.vp = vp
+        if c.di == 0:
+            c.rp = 0
+            return
+        rp = sc.rp_from_vp(vp, c.di)
+        c.rp = rp
+        if vp >= self.vp_off_mv or rp > sc.RP_MAX_OHM:
+            self._latch(c, hp.STOP_ELECTRODE_OFF)
+            c.ctl.stop(sc.ST_RP_HIGH)
+            return
+        if rp < sc.RP_MIN_OHM:
+            self._latch(c, hp.STOP_RP_FAULT)
+            c.ctl.stop(sc.ST_RP_LOW)
+            return
+        ctl = c.ctl
+        if c.calibrating:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
+            ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
+            c.calibrating = False
+        else:
+            if ctl.update(rp) & sc.ST_FAULT_MASK:
+                self._latch(c, hp.STOP_RP_FAULT)
+                return
+        ni = ctl.i_ua
+        nt = ctl.t_us
+        # one measurement may lower the charge, raising it takes two in a row
+        q_now = c.i * c.t
+        if ni * nt <= q_now:
+            c.held = False
+        elif c.held:
+            if c.pi * c.pt < ni * nt:  # of the two proposals, the smaller charge
+                ni = c.pi
+                nt = c.pt
+            c.held = False
+        else:
+            c.held = True
+            c.pi = ni
+            c.pt = nt
+            return
+        c.i = ni
+        c.t = nt
+
+    def _check_keepalive(self, now):
+        if self.clock.ticks_diff(now, self.last_host) > self.keepalive_ms * 1000:
+            k = 0
+            while k < self.n:
+                c = self.chans[k]
+                if c.armed:
+                    self._latch(c, hp.STOP_KEEPALIVE)
+                k += 1
+
+    def sync_outputs(self):
+        """Amplitude of every armed channel set for its next pulse; the others stopped."""
+        k = 0
+        while k < self.n:
+            c = self.chans[k]
+            if c.armed:
+                self.board.set_amplitude(k, c.i)
+            else:
+                self.board.stop(k)
+            k += 1
+
+    def stop_all(self, reason):
+        """Latch every channel (outside the frame: e.g. on a firmware error)."""
+        k = 0
+        while k < self.n:
+            self._latch(self.chans[k], reason)
+            self.board.stop(k)
+            k += 1
+
+    # ------------------------------------------------------------ reports
+    def _head(self, typ):
+        b = self.tx
+        hp.clear(b)
+        b[hp.O_TYPE] = typ
+        hp.put_i32(b, hp.O_SEQ, self.seq)
+        hp.put_i32(b, hp.O_TIME, self.frame_t)
+        self.seq = (self.seq + 1) & 0x3FFFFFFF
+        return b
+
+    def _encode_telemetry(self, c):
+        b = self._head(hp.REP_TELEMETRY)
+        ctl = c.ctl
+        b[hp.O_CH] = c.ch
+        b[hp.O_MODE] = ctl.mode
+        b[hp.O_STOP] = c.stop
+        hp.put_u16(b, hp.O_I, c.di)
+        hp.put_u16(b, hp.O_T, c.dt)
+        hp.put_i32(b, hp.O_VP, c.vp)
+        hp.put_i32(b, hp.O_RP, c.rp)
+        hp.put_i32(b, hp.O_ME, ctl.me_ua2ms)
+        hp.put_i32(b, hp.O_MQT, ctl.mq_target_fc_per_ohm)
+        hp.put_i32(b, hp.O_MQL, ctl.mq_last_fc_per_ohm if c.di else 0)
+        hp.put_u16(b, hp.O_STATUS, ctl.status)
+        hp.put_u16(b, hp.O_NEXT_I, ctl.i_ua)
+        hp.put_u16(b, hp.O_NEXT_T, ctl.t_us)
+        hp.put_u16(b, hp.O_OVERRUNS, hp.sat16(self.overruns))
+        hp.put_u16(b, hp.O_LOOP, hp.sat16(self.loop_us))
+        f = 0
+        if c.armed:
+            f |= hp.FLAG_ARMED
+        if c.held:
+            f |= hp.FLAG_HELD
+        if self.keepalive_ms:
+            f |= hp.FLAG_KEEPALIVE
+        if c.calibrating:
+            f |= hp.FLAG_CALIBRATING
+        b[hp.O_FLAGS] = f
+        b[hp.O_RATE] = self.rate_hz
+
+    def _ack(self, r, result, detail):
+        b = self._head(hp.REP_ACK)
+        b[hp.O_CMD] = r[hp.O_OUT_CMD]
+        b[hp.O_RESULT] = result
+        b[hp.O_TAG] = r[hp.O_OUT_TAG]
+        b[hp.O_DETAIL] = detail
+        self.acks += 1
+        return result
+
+    def _info(self, r):
+        b = self._head(hp.REP_INFO)
+        b[hp.O_CMD] = r[hp.O_OUT_CMD]
+        b[hp.O_RESULT] = hp.RES_OK
+        b[hp.O_TAG] = r[hp.O_OUT_TAG]
+        b[hp.O_FW] = FW_VERSION[0]
+        b[hp.O_FW + 1] = FW_VERSION[1]
+        b[hp.O_FW + 2] = FW_VERSION[2]
+        b[hp.O_FW + 3] = self.n
+        hp.put_u16(b, hp.O_HARD_I, self.hard_i)
+        hp.put_u16(b, hp.O_HARD_T, self.hard_t)
+        hp.put_i32(b, hp.O_HARD_Q, self.hard_q)
+        hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
+        lim = self.lim
+        hp.put_u16(b, hp.O_LIM, lim[0])
+        hp.put_u16(b, hp.O_LIM + 2, lim[1])
+        hp.put_u16(b, hp.O_LIM + 4, lim[2])
+        hp.put_u16(b, hp.O_LIM + 6, lim[3])
+        hp.put_i32(b, hp.O_LIM + 8, lim[4])
+        b[hp.O_INFO_MODE] = self.mode
+        b[hp.O_INFO_RATE] = self.rate_hz
+        hp.put_u16(b, hp.O_INFO_KEEPALIVE, self.keepalive_ms)
+        name = self.board_name
+        k = 0
+        while k < len(name) and k < hp.BOARD_LEN:
+            b[hp.O_BOARD + k] = ord(name[k])
+            k += 1
+        self.acks += 1
+        return hp.RES_OK
+
+    # ------------------------------------------------------------ commands
+    def handle(self, r, now):
+        """Validate and apply one OUT report; the reply is left in self.tx.
+
+        A report that is malformed, unknown or out of range changes nothing.
+        """
+        self.n_cmds += 1
+        if not hp.crc_ok(r):
+            return self._ack(r, hp.RES_BAD_CRC, hp.O_CRC)
+        cmd = r[hp.O_OUT_CMD]
+        if r[3]:
+            return self._ack(r, hp.RES_BAD_FORMAT, 3)
+        ch = r[hp.O_OUT_CH]
+        if ch != hp.CH_ALL and ch >= self.n:
+            return self._ack(r, hp.RES_BAD_CHANNEL, hp.O_OUT_CH)
+        lo = ch
+        hi = ch + 1
+        if ch == hp.CH_ALL:
+            lo = 0
+            hi = self.n
+        self.last_host = now
+        if cmd == hp.CMD_KEEPALIVE:
+            ms = hp.get_u16(r, hp.O_ARG)
+            if ms and not (KEEPALIVE_MIN_MS <= ms <= KEEPALIVE_MAX_MS):
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+            self.keepalive_ms = ms
+            return self._ack(r, hp.RES_OK, 0)
+        if cmd == hp.CMD_GET_INFO:
+            return self._info(r)
+        if cmd == hp.CMD_DISARM:
+            k = lo
+            while k < hi:
+                self._latch(self.chans[k], hp.STOP_DISARMED)
+                k += 1
+            return self._ack(r, hp.RES_OK, 0)
+        if cmd == hp.CMD_ARM:
+            k = lo
+            while k < hi:
+                if not self.chans[k].have_cal:
+                    return self._ack(r, hp.RES_NOT_CALIBRATED, hp.O_OUT_CH)
+                k += 1
+            k = lo
+            while k < hi:
+                c = self.chans[k]
+                if not c.armed:
+                    c.ctl.set_mode(self.mode)
+                    c.armed = True
+                    c.calibrating = True
+                    c.held = False
+                    c.stop = hp.STOP_NONE
+                    c.i = c.i0
+                    c.t = c.t0
+                k += 1
+            return self._ack(r, hp.RES_OK, 0)
+        if cmd == hp.CMD_SET_MODE:
+            mode = r[hp.O_ARG]
+            rate = r[hp.O_ARG + 1]
+            if mode != sc.MODE_AKHTAR and mode != sc.MODE_OPEN_LOOP:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+            if rate and not (RATE_MIN_HZ <= rate <= RATE_MAX_HZ):
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)
+            self.mode = mode
+            k = 0
+            while k < self.n:
+                self.chans[k].ctl.set_mode(mode)
+                k += 1
+            if rate:
+                self.set_rate(rate)
+            return self._ack(r, hp.RES_OK, 0)
+        if cmd == hp.CMD_CALIBRATE:
+            return self._calibrate(r, lo, hi)
+        if cmd == hp.CMD_SET_LIMITS:
+            return self._set_limits(r)
+        return self._ack(r, hp.RES_UNKNOWN_COMMAND, hp.O_OUT_CMD)
+
+    def _calibrate(self, r, lo, hi):
+        i0 = hp.get_u16(r, hp.O_ARG)
+        t0 = hp.get_u16(r, hp.O_ARG + 2)
+        x = hp.get_i32(r, hp.O_ARG + 4)
+        y = hp.get_i32(r, hp.O_ARG + 8)
+        lim = self.lim
+        k = lo
+        while k < hi:
+            if self.chans[k].armed:
+                return self._ack(r, hp.RES_BAD_STATE, hp.O_OUT_CH)
+            k += 1
+        if not lim[0] <= i0 <= lim[1]:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+        if not lim[2] <= t0 <= lim[3]:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
+        if i0 * t0 > lim[4]:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
+        if not sc.X_STAR_MIN_OHM <= x <= 0:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
+        if not 0 <= y < i0 * t0:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
+        k = lo
+        while k < hi:
+            c = self.chans[k]
+            c.i0 = i0
+            c.t0 = t0
+            c.x = x
+            c.y = y
+            c.have_cal = True
+            k += 1
+        return self._ack(r, hp.RES_OK, 0)
+
+    def _set_limits(self, r):
+        i_min = hp.get_u16(r, hp.O_ARG)
+        i_max = hp.get_u16(r, hp.O_ARG + 2)
+        t_min = hp.get_u16(r, hp.O_ARG + 4)
+        t_max = hp.get_u16(r, hp.O_ARG + 6)
+        q_max = hp.get_i32(r, hp.O_ARG + 8)
+        k = 0
+        while k < self.n:
+            if self.chans[k].armed:
+                return self._ack(r, hp.RES_BAD_STATE, 0)
+            k += 1
+        if not 1 <= i_max <= self.hard_i:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
+        if not 1 <= i_min <= i_max:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+        if not 1 <= t_max <= self.hard_t:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
+        if not 1 <= t_min <= t_max:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
+        if not i_min * t_min <= q_max <= self.hard_q:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
+        k = 0
+        while k < self.n:  # a calibration outside the new limits must be sent again
+            c = self.chans[k]
+            if c.have_cal and not (i_min <= c.i0 <= i_max and t_min <= c.t0 <= t_max and c.i0 * c.t0 <= q_max):
+                c.have_cal = False
+            k += 1
+        lim = self.lim
+        lim[0] = i_min
+        lim[1] = i_max
+        lim[2] = t_min
+        lim[3] = t_max
+        lim[4] = q_max
+        k = 0
+        while k < self.n:
+            ctl = self.chans[k].ctl
+            ctl.i_min_ua = i_min  # re-validated together above; same rules as Controller()
+            ctl.i_max_ua = i_max
+            ctl.t_min_us = t_min
+            ctl.t_max_us = t_max
+            ctl.q_max_pc = q_max
+            ctl.calibrated = False
+            k += 1
+        return self._ack(r, hp.RES_OK, 0)

@@ -1,0 +1,250 @@
+"""steadytouch USB HID protocol: 64-byte IN and OUT reports (docs/protocol.md).
+
+Shared by the firmware (MicroPython) and the host (CPython). Encoders write
+into a caller's preallocated bytearray and decoders read fields one at a time,
+so the firmware's frame allocates nothing; every value on the wire stays below
+2**30 in magnitude (a 32-bit MicroPython never makes a long int from it).
+"""
+
+try:
+    from micropython import const
+except ImportError:  # CPython
+
+    def const(x):
+        return x
+
+
+PROTOCOL_VERSION = const(1)
+REPORT_LEN = const(64)
+VID = const(0x1209)  # pid.codes; 0x0001 is its "test PID": for private use only
+PID = const(0x0001)
+
+# Vendor-defined page 0xFF00, one 64-byte IN and one 64-byte OUT report, no report IDs.
+REPORT_DESCRIPTOR = bytes(
+    (
+        0x06, 0x00, 0xFF,  # Usage Page (Vendor 0xFF00)
+        0x09, 0x01,  # Usage (1)
+        0xA1, 0x01,  # Collection (Application)
+        0x15, 0x00,  # Logical Minimum (0)
+        0x26, 0xFF, 0x00,  # Logical Maximum (255)
+        0x75, 0x08,  # Report Size (8)
+        0x95, 0x40,  # Report Count (64)
+        0x09, 0x02,  # Usage (2)
+        0x81, 0x02,  # Input (Data, Var, Abs)
+        0x09, 0x03,  # Usage (3)
+        0x91, 0x02,  # Output (Data, Var, Abs)
+        0xC0,  # End Collection
+    )
+)
+
+# ---- IN report types (byte 0) ----
+REP_TELEMETRY = const(0x01)
+REP_ACK = const(0x02)
+REP_INFO = const(0x03)
+
+# ---- OUT commands (byte 0) ----
+CMD_ARM = const(0x10)
+CMD_DISARM = const(0x11)
+CMD_CALIBRATE = const(0x12)
+CMD_SET_LIMITS = const(0x13)
+CMD_SET_MODE = const(0x14)
+CMD_KEEPALIVE = const(0x15)
+CMD_GET_INFO = const(0x16)
+CH_ALL = const(0xFF)
+
+# ---- result codes (ACK byte 2) ----
+RES_OK = const(0)
+RES_BAD_CRC = const(1)
+RES_UNKNOWN_COMMAND = const(2)
+RES_BAD_CHANNEL = const(3)
+RES_OUT_OF_RANGE = const(4)
+RES_BAD_STATE = const(5)  # e.g. calibrate or set limits while armed
+RES_NOT_CALIBRATED = const(6)  # arm before calibrate
+RES_BAD_FORMAT = const(7)  # reserved bytes not zero
+
+# ---- stop reasons (telemetry byte 3; 0 = stimulating) ----
+STOP_NONE = const(0)
+STOP_IDLE = const(1)  # never armed since boot
+STOP_DISARMED = const(2)  # by command
+STOP_ELECTRODE_OFF = const(3)  # Vp near compliance or Rp above range: latched
+STOP_RP_FAULT = const(4)  # controller fault (Rp below range, ...): latched
+STOP_KEEPALIVE = const(5)  # host silent longer than the keep-alive timeout: latched
+STOP_LIMIT = const(6)  # a pulse would exceed a hard limit: latched
+STOP_INTERNAL = const(7)  # firmware error in the frame: latched
+
+# ---- telemetry flags (byte 46) ----
+FLAG_ARMED = const(0x01)
+FLAG_HELD = const(0x02)  # a charge increase waits for a confirming measurement
+FLAG_KEEPALIVE = const(0x04)
+FLAG_CALIBRATING = const(0x08)  # this pulse is the calibration pulse (Rp0)
+
+# ---- byte offsets ----
+# common to all IN reports
+O_TYPE = const(0)
+O_SEQ = const(4)  # u32, wraps at 2**30
+O_TIME = const(8)  # u32, device ticks_us at frame start, wraps at 2**30
+# telemetry
+O_CH = const(1)
+O_MODE = const(2)
+O_STOP = const(3)
+O_I = const(12)  # u16 uA delivered in this frame (0: no pulse)
+O_T = const(14)  # u16 us
+O_VP = const(16)  # u32 mV peak measured on it
+O_RP = const(20)  # i32 ohm
+O_ME = const(24)  # u32 uA^2*ms
+O_MQT = const(28)  # i32 fC/ohm target
+O_MQL = const(32)  # i32 fC/ohm of this pulse
+O_STATUS = const(36)  # u16 controller status bits
+O_NEXT_I = const(38)  # u16 controller output for the next pulse
+O_NEXT_T = const(40)  # u16
+O_OVERRUNS = const(42)  # u16 saturating
+O_LOOP = const(44)  # u16 us, saturating
+O_FLAGS = const(46)
+O_RATE = const(47)
+# ack / info
+O_CMD = const(1)
+O_RESULT = const(2)
+O_TAG = const(3)
+O_DETAIL = const(12)  # ack: offset of the offending OUT byte (0 = none)
+O_FW = const(12)  # info: major, minor, patch, n_channels
+O_HARD_I = const(16)
+O_HARD_T = const(18)
+O_HARD_Q = const(20)
+O_COMPLIANCE = const(24)
+O_LIM = const(28)  # i_min u16, i_max u16, t_min u16, t_max u16, q_max u32
+O_INFO_MODE = const(40)
+O_INFO_RATE = const(41)
+O_INFO_KEEPALIVE = const(42)
+O_BOARD = const(44)  # 16 bytes ASCII, NUL padded
+BOARD_LEN = const(16)
+# OUT
+O_OUT_CMD = const(0)
+O_OUT_TAG = const(1)
+O_OUT_CH = const(2)
+O_ARG = const(4)
+O_CRC = const(62)
+CRC_LEN = const(62)
+
+I32_BAD = const(-0x3FFFFFFF)  # get_i32 of a value outside +-2**29
+
+
+def crc16(buf, n):
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of buf[0:n]."""
+    crc = 0xFFFF
+    for k in range(n):
+        crc ^= buf[k] << 8
+        for _ in range(8):
+            if crc & 0x8000:
+                crc = ((crc << 1) ^ 0x1021) & 0xFFFF
+            else:
+                crc = (crc << 1) & 0xFFFF
+    return crc
+
+
+def put_u8(b, o, v):
+    b[o] = v & 0xFF
+
+
+def put_u16(b, o, v):
+    b[o] = v & 0xFF
+    b[o + 1] = (v >> 8) & 0xFF
+
+
+def put_i32(b, o, v):
+    """Little-endian 32-bit; v must be within +-2**30 (u32 fields use it too)."""
+    b[o] = v & 0xFF
+    b[o + 1] = (v >> 8) & 0xFF
+    b[o + 2] = (v >> 16) & 0xFF
+    b[o + 3] = (v >> 24) & 0xFF
+
+
+def get_u16(b, o):
+    return b[o] | (b[o + 1] << 8)
+
+
+def get_i32(b, o):
+    """Signed 32-bit, or I32_BAD if outside -2**29 .. 2**29-1 (never a long int)."""
+    top = b[o + 3]
+    if top >= 0xE0:
+        top -= 0x100
+    elif top >= 0x20:
+        return I32_BAD
+    return (top << 24) | (b[o + 2] << 16) | (b[o + 1] << 8) | b[o]
+
+
+def clear(b):
+    for k in range(REPORT_LEN):
+        b[k] = 0
+
+
+def sat16(v):
+    return 0xFFFF if v > 0xFFFF else (0 if v < 0 else v)
+
+
+def seal(b):
+    """Write the CRC of an OUT report into its last two bytes."""
+    put_u16(b, O_CRC, crc16(b, CRC_LEN))
+
+
+def crc_ok(b):
+    return get_u16(b, O_CRC) == crc16(b, CRC_LEN)
+
+
+# ---- OUT report builders (host, and the firmware's --auto start) ----
+def _cmd(b, cmd, ch, tag):
+    clear(b)
+    b[O_OUT_CMD] = cmd
+    b[O_OUT_TAG] = tag & 0xFF
+    b[O_OUT_CH] = ch & 0xFF
+    return b
+
+
+def cmd_arm(b, ch, tag=0):
+    seal(_cmd(b, CMD_ARM, ch, tag))
+    return b
+
+
+def cmd_disarm(b, ch, tag=0):
+    seal(_cmd(b, CMD_DISARM, ch, tag))
+    return b
+
+
+def cmd_calibrate(b, ch, i0_ua, t0_us, x_star_ohm, y_star_pc, tag=0):
+    _cmd(b, CMD_CALIBRATE, ch, tag)
+    put_u16(b, O_ARG, i0_ua)
+    put_u16(b, O_ARG + 2, t0_us)
+    put_i32(b, O_ARG + 4, x_star_ohm)
+    put_i32(b, O_ARG + 8, y_star_pc)
+    seal(b)
+    return b
+
+
+def cmd_set_limits(b, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc, tag=0):
+    _cmd(b, CMD_SET_LIMITS, CH_ALL, tag)
+    put_u16(b, O_ARG, i_min_ua)
+    put_u16(b, O_ARG + 2, i_max_ua)
+    put_u16(b, O_ARG + 4, t_min_us)
+    put_u16(b, O_ARG + 6, t_max_us)
+    put_i32(b, O_ARG + 8, q_max_pc)
+    seal(b)
+    return b
+
+
+def cmd_set_mode(b, mode, rate_hz=0, tag=0):
+    _cmd(b, CMD_SET_MODE, CH_ALL, tag)
+    b[O_ARG] = mode
+    b[O_ARG + 1] = rate_hz
+    seal(b)
+    return b
+
+
+def cmd_keepalive(b, timeout_ms=0, tag=0):
+    _cmd(b, CMD_KEEPALIVE, CH_ALL, tag)
+    put_u16(b, O_ARG, timeout_ms)
+    seal(b)
+    return b
+
+
+def cmd_get_info(b, tag=0):
+    seal(_cmd(b, CMD_GET_INFO, CH_ALL, tag))
+    return b
