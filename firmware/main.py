@@ -16,6 +16,9 @@ USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--chan
          " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|open]")
 
 
+_VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto")
+
+
 class UsageError(Exception):
     pass
 
@@ -42,6 +45,8 @@ def parse(argv):
             o["realtime"] = True
             k += 1
             continue
+        if a not in _VALUED:
+            raise UsageError("unknown option %s\n%s" % (a, USAGE))
         if k + 1 >= len(argv):
             raise UsageError("%s needs a value\n%s" % (a, USAGE))
         v = argv[k + 1]

@@ -116,6 +116,11 @@ class Info:
     rate_hz: int
     keepalive_ms: int
     board: str
+    result: int = hp.RES_OK
+
+    @property
+    def ok(self) -> bool:
+        return self.result == hp.RES_OK
 
 
 def decode(report: bytes):
@@ -148,6 +153,7 @@ def decode(report: bytes):
             mode=report[hp.O_INFO_MODE], rate_hz=report[hp.O_INFO_RATE],
             keepalive_ms=struct.unpack_from("<H", report, hp.O_INFO_KEEPALIVE)[0],
             board=bytes(report[hp.O_BOARD : hp.O_BOARD + hp.BOARD_LEN]).rstrip(b"\0").decode("ascii", "replace"),
+            result=report[hp.O_RESULT],
         )
     raise ProtocolError(f"unknown report type 0x{typ:02x}")
 

@@ -1,0 +1,124 @@
+# The rp2 (Raspberry Pi Pico) board: PIO-gated pulses, amplitude by filtered
+# PWM, free-running ADC -> FIFO -> rp2.DMA capture of the voltage monitor, the
+# hardware watchdog and the USB HID interface. Pins and scales: board_config.py
+# and docs/hardware.md. This layer needs the real chip; everything above it
+# runs in the MicroPython unix VM against board_sim.SimBoard, which has the same
+# interface. Registers: RP2040 datasheet, sections 4.9 (ADC) and 2.5 (DMA).
+import time
+from array import array
+
+import machine
+import rp2
+from micropython import const
+
+import hid_protocol as hp
+import pio_gate
+
+_ADC_CS = const(0x4004C000)
+_ADC_FCS = const(0x4004C008)
+_ADC_FIFO = const(0x4004C00C)
+_ADC_DIV = const(0x4004C010)
+_CS_EN = const(0x1)
+_CS_START_MANY = const(0x8)
+_FCS_EN = const(0x1)
+_FCS_DREQ_EN = const(0x8)
+_FCS_THRESH_1 = const(0x1000000)
+_FCS_ERR_FLAGS = const(0xC00)  # UNDER | OVER, write 1 to clear
+_DREQ_ADC = const(36)
+_ADC_CLK_HZ = const(48000000)
+
+
+class Clock:
+    ticks_us = staticmethod(time.ticks_us)
+    ticks_add = staticmethod(time.ticks_add)
+    ticks_diff = staticmethod(time.ticks_diff)
+    sleep_us = staticmethod(time.sleep_us)
+
+    def advance(self, us):
+        pass
+
+
+class Board:
+    def __init__(self, cfg):
+        self.cfg = cfg
+        n = cfg.N_CHANNELS
+        self.n_channels = n
+        self.dt_us = cfg.ADC_SAMPLE_US
+        self.n_max = cfg.HARD_T_MAX_US // cfg.ADC_SAMPLE_US + 4
+        self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n)]
+        self.amp_full = cfg.AMP_UA_AT_FULL
+        self.gates = [machine.Pin(cfg.GATE_PINS[k], machine.Pin.OUT, value=0) for k in range(n)]
+        self.sms = []
+        for k in range(n):
+            sm = rp2.StateMachine(k, pio_gate.gate, freq=cfg.PIO_FREQ_HZ, set_base=self.gates[k])
+            sm.active(1)
+            self.sms.append(sm)
+        self.pwms = [machine.PWM(machine.Pin(cfg.AMP_PWM_PINS[k]), freq=cfg.AMP_PWM_FREQ_HZ, duty_u16=0)
+                     for k in range(n)]
+        self.ainsel = [cfg.ADC_INPUTS[k] << 12 for k in range(n)]
+        for k in range(n):
+            machine.ADC(26 + cfg.ADC_INPUTS[k])  # configures the pad as an analog input
+        machine.mem32[_ADC_DIV] = (_ADC_CLK_HZ // 1000000 * cfg.ADC_SAMPLE_US - 1) << 8
+        self.dma = rp2.DMA()
+        self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
+        self.overhead = pio_gate.GATE_OVERHEAD_US
+        self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
+        self.usb = self._usb()
+
+    def _usb(self):
+        try:
+            import usb.device
+            import usb_hid64
+        except ImportError:
+            return None  # usb-device-hid not installed: run without telemetry
+        hid = usb_hid64.Hid64()
+        usb.device.get().init(hid, manufacturer_str="steadytouch", product_str="steadytouch stimulator",
+                              id_vendor=hp.VID, id_product=hp.PID, builtin_driver=True)
+        return hid
+
+    # ------------------------------------------------------------ board API
+    def set_amplitude(self, ch, i_ua):
+        if i_ua > self.amp_full:
+            i_ua = self.amp_full
+        self.pwms[ch].duty_u16(i_ua * 65535 // self.amp_full)
+
+    def stop(self, ch):
+        sm = self.sms[ch]
+        if sm.tx_fifo():
+            sm.active(0)
+            sm.restart()
+            sm.exec("set(pins, 0)")  # stopping mid-pulse could leave the gate high
+            sm.active(1)
+        self.pwms[ch].duty_u16(0)
+
+    def stop_all(self):
+        for k in range(self.n_channels):
+            self.stop(k)
+
+    def feed_watchdog(self):
+        self.wdt.feed()
+
+    def fire(self, ch, t_us):
+        """One pulse of t_us at the set amplitude, the monitor captured across it."""
+        n = t_us // self.dt_us + 2  # a few samples past the falling edge
+        if n > self.n_max:
+            n = self.n_max
+        mem = machine.mem32
+        mem[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        mem[_ADC_FCS] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
+        while mem[_ADC_FCS] & 0xF0000:  # drain the FIFO
+            mem[_ADC_FIFO]
+        self.dma.config(read=_ADC_FIFO, write=self.adc[ch], count=n, ctrl=self.dma_ctrl, trigger=True)
+        mem[_ADC_CS] = _CS_EN | self.ainsel[ch] | _CS_START_MANY
+        self.sms[ch].put(t_us - self.overhead)
+        while self.dma.active():
+            pass
+        mem[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        return n
+
+    def send(self, buf):
+        if self.usb is not None:
+            self.usb.send(buf)
+
+    def recv(self, buf):
+        return self.usb is not None and self.usb.recv(buf)
