@@ -173,13 +173,13 @@ class SimBoard:
         self.gate_high[ch] = False
         self.stops[ch] += 1
 
-    def feed_watchdog(self):
+    def feed_watchdog(self):  # once per frame: the scenario follows the clock even with no pulse
         self.watchdog_feeds += 1
+        self._advance_scenario()
 
     def fire(self, ch, t_us):
         """Gate a pulse of t_us at the set amplitude; fill adc[ch]; return the sample count."""
-        if ch == 0:
-            self._advance_scenario()
+        self._advance_scenario()
         i_ua = self.amp[ch]
         n = t_us // self.dt_us
         if n > self.n_max:

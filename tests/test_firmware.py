@@ -199,3 +199,65 @@ def test_rate_and_overruns_are_reported():
     assert tel[0].rate_hz == 100
     assert tel[9].overruns == 0 and tel[-1].overruns >= 2
     assert tel[-1].loop_us >= 12000
+
+
+def test_keepalive_stops_a_silent_host_and_latches():
+    reports, res, _ = run_fw("""
+        s, board, usb, clock = make("steady", n=2)
+        start(s)
+        b = bytearray(64)
+        assert apply(s, hp.cmd_keepalive(b, 200)) == 0
+        for _ in range(5):             # the host pings every 100 ms: keeps going
+            s.run(5)
+            command(s, hp.cmd_keepalive(bytearray(64), 200))
+        alive = [c.armed for c in s.chans]
+        s.run(20)                      # then goes silent for 400 ms
+        stopped = [c.stop for c in s.chans]
+        command(s, hp.cmd_keepalive(bytearray(64), 200))
+        s.run(3)                       # a late ping does not re-arm
+        result(alive=alive, stopped=stopped, after=[c.stop for c in s.chans], pulses=board.pulses)
+    """)
+    r = res[0]
+    assert r["alive"] == [True, True]
+    assert r["stopped"] == [hp.STOP_KEEPALIVE] * 2 and r["after"] == [hp.STOP_KEEPALIVE] * 2
+    assert 30 <= r["pulses"][0] <= 37  # 25 frames pinged + < 200 ms of silence at 50 Hz
+
+
+@pytest.mark.parametrize("name", ["steady", "peel", "gel", "gel-step", "exercise", "off"])
+def test_every_builtin_scenario_runs(name):
+    _, res, _ = run_fw(f"""
+        s, board, usb, clock = make("{name}", n=2, keep=False)
+        start(s, limits=(100, 10000, 50, 8000, 10000000))
+        s.run(300)
+        result(errors=s.errors, t=board.t_s, stops=[c.stop for c in s.chans], pulses=board.pulses)
+    """)
+    r = res[0]
+    assert r["errors"] == 0 and r["t"] == pytest.approx(6.0, abs=0.05)
+    if name == "off":
+        assert r["stops"] == [hp.STOP_ELECTRODE_OFF] * 2
+    else:
+        assert r["stops"] == [hp.STOP_NONE] * 2 and r["pulses"] == [300, 300]
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("time,contact,hydration\n0,1,1\n", "line 1: header must be time_s,contact,hydration"),
+        ("time_s,contact,hydration\n0,1,1\n1,x,1\n", "line 3: not a number"),
+        ("time_s,contact,hydration\n0,1,1\n1,1.5,1\n", "line 3: contact 1.5 out of range [0, 1]"),
+        ("time_s,contact,hydration\n0,1,1\n1,1,0\n", "line 3: hydration 0 out of range [0.05, 2]"),
+        ("time_s,contact,hydration\n0,1,1\n0,1,1\n", "line 3: time must increase"),
+        ("time_s,contact,hydration\n1,1,1\n", "line 2: the first row must be at time 0"),
+        ("time_s,contact,hydration\n0,1\n", "line 2: expected 3 columns, got 2"),
+    ],
+)
+def test_bad_scenario_csv_names_the_line(tmp_path, text, words):
+    import subprocess
+
+    from conftest import FIRMWARE, SHARED, tool
+
+    f = tmp_path / "bad.csv"
+    f.write_text(text)
+    p = subprocess.run([tool("micropython"), str(FIRMWARE / "main.py"), "--scenario", str(f)], capture_output=True,
+                       env={"MICROPYPATH": f"{SHARED}:{FIRMWARE}"}, timeout=60)
+    assert p.returncode == 2 and words in p.stderr.decode(), p.stderr
