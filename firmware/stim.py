@@ -49,6 +49,7 @@ class Channel:
         self.x = 0
         self.y = 0
         self.calibrating = False
+        self.cal_pulse = False  # this frame's pulse is the calibration pulse (telemetry flag)
         self.i = 0  # pulse for this frame (0: none)
         self.t = 0
         self.di = 0  # pulse delivered this frame (telemetry)
@@ -72,6 +73,7 @@ class Stimulator:
         self.compliance_mv = cfg.COMPLIANCE_MV
         self.vp_off_mv = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
         self.board_name = cfg.BOARD_NAME
+        self.board_bytes = cfg.BOARD_NAME.encode()  # indexing bytes allocates nothing
         self.uv_per_count = cfg.VMON_UV_PER_COUNT
         if not (cfg.HARD_I_MAX_UA <= sc.I_LIMIT_UA and cfg.HARD_T_MAX_US <= sc.T_LIMIT_US
                 and cfg.HARD_Q_MAX_PC <= sc.Q_LIMIT_PC and cfg.COMPLIANCE_MV <= sc.VP_LIMIT_MV):
@@ -200,6 +202,7 @@ class Stimulator:
         """Last check before the gate opens: hard limits, independent of the controller."""
         c.di = 0
         c.dt = 0
+        c.cal_pulse = c.calibrating
         if not c.armed or c.i <= 0:
             return False
         if c.i > self.hard_i or c.t > self.hard_t or c.t <= 0 or c.i * c.t > self.hard_q:
@@ -350,7 +353,7 @@ class Stimulator:
             f |= hp.FLAG_HELD
         if self.keepalive_ms:
             f |= hp.FLAG_KEEPALIVE
-        if c.calibrating:
+        if c.cal_pulse:
             f |= hp.FLAG_CALIBRATING
         b[hp.O_FLAGS] = f
         b[hp.O_RATE] = self.rate_hz
@@ -386,11 +389,34 @@ class Stimulator:
         b[hp.O_INFO_MODE] = self.mode
         b[hp.O_INFO_RATE] = self.rate_hz
         hp.put_u16(b, hp.O_INFO_KEEPALIVE, self.keepalive_ms)
-        name = self.board_name
+        name = self.board_bytes
         k = 0
         while k < len(name) and k < hp.BOARD_LEN:
-            b[hp.O_BOARD + k] = ord(name[k])
+            b[hp.O_BOARD + k] = name[k]
             k += 1
+        self.acks += 1
+        return hp.RES_OK
+
+    def _cal_info(self, r, c):
+        b = self._head(hp.REP_CAL)
+        b[hp.O_CMD] = r[hp.O_OUT_CMD]
+        b[hp.O_RESULT] = hp.RES_OK
+        b[hp.O_TAG] = r[hp.O_OUT_TAG]
+        b[hp.O_CAL_CH] = c.ch
+        f = 0
+        if c.have_cal:
+            f |= 1
+        if c.armed:
+            f |= 2
+        if c.ctl.calibrated:
+            f |= 4
+        b[hp.O_CAL_FLAGS] = f
+        hp.put_u16(b, hp.O_CAL_I0, c.i0)
+        hp.put_u16(b, hp.O_CAL_T0, c.t0)
+        hp.put_i32(b, hp.O_CAL_X, c.x)
+        hp.put_i32(b, hp.O_CAL_Y, c.y)
+        hp.put_i32(b, hp.O_CAL_RP0, c.ctl.rp0_ohm if c.ctl.calibrated else 0)
+        b[hp.O_CAL_MODE] = c.ctl.mode
         self.acks += 1
         return hp.RES_OK
 
@@ -422,7 +448,9 @@ class Stimulator:
             self.keepalive_ms = ms
             return self._ack(r, hp.RES_OK, 0)
         if cmd == hp.CMD_GET_INFO:
-            return self._info(r)
+            if ch == hp.CH_ALL:
+                return self._info(r)
+            return self._cal_info(r, self.chans[ch])
         if cmd == hp.CMD_DISARM:
             k = lo
             while k < hi:

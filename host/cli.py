@@ -1,9 +1,10 @@
-"""`steadytouch` command line."""
+"""`steadytouch` command line: simulate, monitor, record, audit, plot, flash and
+command a stimulator. User mistakes end in one line on stderr, never a traceback."""
 
 from __future__ import annotations
 
 import argparse
-import csv
+import json
 import statistics
 import sys
 import time
@@ -13,25 +14,21 @@ import hid_protocol as hp
 import sensation_core as sc
 
 from . import __version__
-from .protocol import STOP_WORDS, Telemetry
+from .device import Device, DeviceError
+from .protocol import STOP_WORDS, CalInfo, Info, Telemetry
+from .record import Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, run_firmware, scenario_keys
+from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
-TELEMETRY_COLUMNS = [
-    "seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status", "stop", "mode", "me_ua2ms",
-    "mq_target_fc_per_ohm", "mq_last_fc_per_ohm", "next_i_ua", "next_t_us", "flags", "overruns", "loop_us",
-]
-
-
-def write_csv(path: Path, tel: list[Telemetry], meta: dict) -> None:
-    with open(path, "w", newline="") as f:
-        for k, v in meta.items():
-            f.write(f"# {k}: {v}\n")
-        w = csv.writer(f)
-        w.writerow(TELEMETRY_COLUMNS)
-        for t in tel:
-            w.writerow([getattr(t, c) for c in TELEMETRY_COLUMNS])
+USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError)
+MODES = {"akhtar": sc.MODE_AKHTAR, "open": sc.MODE_OPEN_LOOP}
 
 
+def say(*a):
+    print(*a, flush=True)
+
+
+# ---------------------------------------------------------------- sim
 def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]:
     bounds = [k[0] for k in keys] + [duration_s]
     names = list(runs)
@@ -52,12 +49,19 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
                 continue
             err = abs(statistics.median(t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm for t in w))
             rel = err / max(1, w[0].mq_target_fc_per_ohm)
-            bound = " (bound)" if any(t.status & sc.ST_BOUND_MASK for t in w) else ""
-            cells.append(f"{err / 1e6:9.2e}{bound:>8}" if bound else f"{err / 1e6:9.2e} {rel:6.1%} ")
+            bound = any(t.status & sc.ST_BOUND_MASK for t in w)
+            cells.append(f"{err / 1e6:9.2e} (bound)" if bound else f"{err / 1e6:9.2e} {rel:6.1%} ")
         w = [t for t in ref if lo <= t.time_us / 1e6 < hi and t.i_ua and t.channel == 0]
         rp = f"{min(t.rp_ohm for t in w) / 1e3:6.1f}-{max(t.rp_ohm for t in w) / 1e3:6.1f}" if w else "-"
         lines.append(f"{lo:6.1f}-{hi:6.1f} | {keys[k][1]:7.2f} | {rp:>15} | " + " | ".join(cells))
     return lines
+
+
+def sim_meta(a, cal: Calib, m: str) -> dict:
+    return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}", "scenario": a.scenario,
+            "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
+            "y_star_pc": cal.y_star_pc, "i_min_ua": 500, "i_max_ua": 10000, "t_min_us": 100, "t_max_us": 8000,
+            "q_max_pc": 10000000, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 
 def cmd_sim(a) -> int:
@@ -66,56 +70,354 @@ def cmd_sim(a) -> int:
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    runs = {}
+    runs, files = {}, []
+    stem = Path(a.scenario).stem
     for m in modes:
         t0 = time.perf_counter()
-        print(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) "
-              "in the MicroPython VM ...", flush=True)
+        say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
         reps = run_firmware(a.scenario, m, cal, a.channels, a.seed)
-        acks = [r for r in reps if not isinstance(r, Telemetry)]
-        bad = [r for r in acks if not r.ok]
+        bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
         if bad:
             raise SimError(f"the device refused: {bad[0].words()}")
         tel = [r for r in reps if isinstance(r, Telemetry)]
-        stem = Path(a.scenario).stem
         path = out / f"{stem}-{m}.csv"
-        write_csv(path, tel, {
-            "firmware": __version__, "board": "sim", "scenario": a.scenario, "mode": m,
-            "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm, "y_star_pc": cal.y_star_pc,
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        })
+        write_recording(path, tel, sim_meta(a, cal, m))
         runs[m] = tel
-        stops = {STOP_WORDS.get(t.stop, t.stop) for t in tel if t.stop not in (hp.STOP_NONE,)}
-        print(f"  {len(tel)} pulses in {time.perf_counter() - t0:.1f} s -> {path}"
-              + (f"; stops: {', '.join(sorted(map(str, stops)))}" if stops else ""))
-    print()
-    print("mQ error: |median(measured - target)| over each hold, in uC/kohm (the paper's settle threshold: 2.5e-05);")
-    print("(bound) = the law needs I or T beyond its limits, which are held (paper, Discussion)")
+        files.append(path)
+        stops = sorted({STOP_WORDS.get(t.stop, str(t.stop)) for t in tel if t.stop != hp.STOP_NONE})
+        say(f"  {len(tel)} pulses in {time.perf_counter() - t0:.1f} s -> {path}" + (f"; stops: {', '.join(stops)}" if stops else ""))
+    if not a.no_plot:
+        from .plot import fig5
+
+        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(f)) for m, f in zip(modes, files)]
+        png = fig5(recs, out / f"{stem}.png")
+        say(f"  figure (the paper's Fig. 5 layout) -> {png}")
+    say("")
+    say("mQ error: |median(measured - target)| over each hold, in uC/kohm (the paper's settle threshold: 2.5e-05);")
+    say("(bound) = the law needs I or T beyond its limits, which are held (paper, Discussion)")
     for line in phase_table(keys, duration, runs):
-        print(line)
+        say(line)
     return 0
 
 
+# ------------------------------------------------------------ devices
+def open_device(a) -> Device:
+    return Device(open_transport(a.device))
+
+
+def cmd_info(a) -> int:
+    with open_transport(a.device) as t:
+        d = Device(t)
+        i = d.info()
+        say(f"{a.device}: steadytouch firmware {i.firmware} on {i.board}, {i.n_channels} channel(s)")
+        say(f"  hard limits: I <= {i.hard_i_max_ua} uA, T <= {i.hard_t_max_us} us, Q <= {i.hard_q_max_pc} pC, "
+            f"compliance {i.compliance_mv / 1000:g} V")
+        say(f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC")
+        say(f"  mode {'akhtar' if i.mode == sc.MODE_AKHTAR else 'open loop'}, {i.rate_hz} Hz, "
+            f"keep-alive {'off' if not i.keepalive_ms else str(i.keepalive_ms) + ' ms'}")
+        for ch in range(i.n_channels):
+            c = d.calibration(ch)
+            if c.calibrated:
+                rp0 = f", Rp0 {c.rp0_ohm} ohm" if c.rp0_ohm else ""
+                say(f"  ch{ch}: I0 {c.i0_ua} uA, T0 {c.t0_us} us, x* {c.x_star_ohm} ohm, y* {c.y_star_pc} pC{rp0}"
+                    + (" (armed)" if c.flags & 2 else ""))
+            else:
+                say(f"  ch{ch}: not calibrated")
+    return 0
+
+
+def _simple(fn_name, *args_from):
+    def run(a) -> int:
+        with open_transport(a.device) as t:
+            d = Device(t)
+            ack = getattr(d, fn_name)(*[f(a) for f in args_from])
+            say(f"{a.device}: {ack.words()}")
+        return 0
+
+    return run
+
+
+def _channel(a):
+    return hp.CH_ALL if a.channel is None else a.channel
+
+
+def cmd_calibrate(a) -> int:
+    vals = {"i0_ua": a.i0_ua, "t0_us": a.t0_us, "x_star_ohm": a.x_star_ohm, "y_star_pc": a.y_star_pc}
+    if a.from_file:
+        try:
+            data = json.loads(Path(a.from_file).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise RecordingError(f"{a.from_file}: not a readable calibration JSON ({e})") from None
+        for k in vals:
+            if vals[k] is None and k in data:
+                vals[k] = int(round(data[k]))
+    missing = [k for k, v in vals.items() if v is None]
+    if missing:
+        raise ValueError("calibrate needs " + ", ".join("--" + k.replace("_", "-") for k in missing)
+                         + " (or --from calibration.json)")
+    with open_transport(a.device) as t:
+        ack = Device(t).calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
+        say(f"{a.device}: {ack.words()} (I0 {vals['i0_ua']} uA, T0 {vals['t0_us']} us, "
+            f"x* {vals['x_star_ohm']} ohm, y* {vals['y_star_pc']} pC; Rp0 is measured on the first pulse after arm)")
+    return 0
+
+
+# ------------------------------------------------------------ record / monitor
+def device_meta(d: Device, url: str) -> dict:
+    i: Info = d.info()
+    meta = {"firmware": i.firmware, "board": i.board, "device": url, "i_min_ua": i.i_min_ua,
+            "i_max_ua": i.i_max_ua, "t_min_us": i.t_min_us, "t_max_us": i.t_max_us, "q_max_pc": i.q_max_pc,
+            "hard_i_max_ua": i.hard_i_max_ua, "hard_q_max_pc": i.hard_q_max_pc, "rate_hz": i.rate_hz}
+    for ch in range(i.n_channels):
+        c: CalInfo = d.calibration(ch)
+        if c.calibrated:
+            meta.update({f"ch{ch}_i0_ua": c.i0_ua, f"ch{ch}_t0_us": c.t0_us, f"ch{ch}_x_star_ohm": c.x_star_ohm,
+                         f"ch{ch}_y_star_pc": c.y_star_pc, f"ch{ch}_rp0_ohm": c.rp0_ohm})
+    meta["started"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+    return meta
+
+
+def cmd_record(a) -> int:
+    out = Path(a.file)
+    with open_transport(a.device) as t:
+        d = Device(t)
+        meta = device_meta(d, a.device)
+        rec = Recorder(out, meta)
+        say(f"recording {a.device} -> {out}  (Ctrl-C to stop)")
+        t_end = time.monotonic() + a.seconds if a.seconds else None
+        last = 0.0
+        lost_device = None
+        try:
+            while t_end is None or time.monotonic() < t_end:
+                try:
+                    rep = d.read(0.5)
+                except Disconnected as e:
+                    lost_device = e
+                    break
+                if isinstance(rep, Telemetry):
+                    rec.write(rep)
+                now = time.monotonic()
+                if now - last >= 1.0 and sys.stderr.isatty():
+                    last = now
+                    print(f"\r  {rec.rows} pulses, {d.lost} reports lost", end="", file=sys.stderr, flush=True)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            rec.close()
+        if sys.stderr.isatty():
+            print(file=sys.stderr)
+        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost)")
+        if lost_device is not None:
+            print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
+            return 1
+    return 0
+
+
+def cmd_monitor(a) -> int:
+    from .monitor import MonitorState
+
+    state = MonitorState()
+    tty = sys.stdout.isatty()
+    with open_transport(a.device) as t:
+        d = Device(t)
+        t_end = time.monotonic() + a.seconds if a.seconds else None
+        next_draw = 0.0
+        try:
+            while t_end is None or time.monotonic() < t_end:
+                rep = d.read(0.05)
+                if isinstance(rep, Telemetry):
+                    state.add(rep)
+                now = time.monotonic()
+                if now >= next_draw:
+                    next_draw = now + 0.1  # 10 screens a second
+                    screen = state.render(a.device, d.lost)
+                    if tty:
+                        sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
+                        sys.stdout.flush()
+            if not tty:
+                say(state.render(a.device, d.lost))
+        except KeyboardInterrupt:
+            pass
+        except Disconnected as e:
+            say(state.render(a.device, d.lost))
+            print(f"steadytouch: device lost: {e}", file=sys.stderr)
+            return 1
+    return 0
+
+
+# ------------------------------------------------------------ files
+def cmd_audit(a) -> int:
+    from .audit import audit
+
+    meta, rows = read_recording(a.file)
+    r = audit(meta, rows, a.file)
+    for m in r.mismatches[:20]:
+        say(f"  row {m.line} (seq {m.seq}, ch{m.channel}): device sent I,T = {m.recorded}, the reference gives {m.expected}")
+    if len(r.mismatches) > 20:
+        say(f"  ... and {len(r.mismatches) - 20} more")
+    if r.checked == 0:
+        say(f"{a.file}: no pulse could be replayed: the recording has no calibration pulse and its header no Rp0")
+        return 1
+    verdict = "bit-exact" if not r.mismatches else f"{len(r.mismatches)} MISMATCH(ES)"
+    say(f"{a.file}: {r.checked} pulses replayed through sensation_core: {verdict}"
+        + (f" ({r.skipped} before a calibration was known, skipped)" if r.skipped else ""))
+    return 1 if r.mismatches else 0
+
+
+def cmd_plot(a) -> int:
+    from .plot import fig5, planes
+
+    recs = []
+    for f in a.files:
+        meta, rows = read_recording(f)
+        title = {"akhtar": "with the controller", "open": "open loop"}.get(meta.get("mode", ""), Path(f).stem)
+        recs.append((title, meta, rows))
+    out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
+    say(f"figure -> {fig5(recs, out, a.channel)}")
+    if a.planes:
+        p = out.with_name(out.stem + "-planes.png")
+        say(f"planes -> {planes(recs[0][1], recs[0][2], p, a.channel)}")
+    return 0
+
+
+def cmd_devices(a) -> int:
+    from .transport import _hid_module
+
+    found = 0
+    try:
+        mod = _hid_module()
+        for dinfo in mod.enumerate(hp.VID, hp.PID):
+            found += 1
+            say(f"hid://{dinfo['vendor_id']:04x}:{dinfo['product_id']:04x}/{dinfo.get('serial_number') or ''}  "
+                f"{dinfo.get('product_string') or ''}")
+    except Exception as e:  # no HID backend on this machine
+        say(f"(HID not available: {e})")
+    from serial.tools import list_ports
+
+    for p in list_ports.comports():
+        if p.vid == 0x2E8A:
+            found += 1
+            say(f"{p.device}  MicroPython REPL (USB {p.vid:04x}:{p.pid:04x}) - flash with `steadytouch flash --port {p.device}`")
+    if not found:
+        say("no steadytouch board or Pico found; `sim://peel` runs the simulator")
+    return 0
+
+
+def cmd_flash(a) -> int:
+    import subprocess
+
+    from .flash import FlashError, build, deploy_commands, find_port
+
+    out = Path(a.build_dir)
+    files = build(out)
+    say(f"compiled {len(files)} files for the RP2040 into {out}:")
+    for f in files:
+        say(f"  {f.name}")
+    if a.build_only:
+        return 0
+    port = a.port or ("PORT" if a.dry_run else find_port())
+    cmds = deploy_commands(port, out)
+    if a.dry_run:
+        say("would run:")
+        for c in cmds:
+            say("  " + " ".join(c))
+        return 0
+    for c in cmds:
+        say("$ " + " ".join(c[1:]))
+        if subprocess.run(c).returncode:
+            raise FlashError(f"mpremote failed: {' '.join(c[1:])}")
+    time.sleep(2.0)
+    with open_transport(a.device) as t:
+        i = Device(t).info()
+    say(f"the board now runs steadytouch firmware {i.firmware} ({i.board})")
+    return 0
+
+
+# ------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
+    raw = argparse.RawDescriptionHelpFormatter
     p = argparse.ArgumentParser(prog="steadytouch", description="Constant-sensation electrotactile stimulation: host tools.")
     p.add_argument("--version", action="version", version=f"steadytouch {__version__}")
-    sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser(
-        "sim", help="run the firmware in the MicroPython VM against a simulated electrode",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="examples:\n  steadytouch sim peel\n  steadytouch sim gel --mode akhtar --out runs/\n"
-               "  steadytouch sim my-disturbance.csv   (columns time_s,contact,hydration)",
-    )
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    def add(name, fn, help, examples, device=True):
+        s = sub.add_parser(name, help=help, description=help, formatter_class=raw, epilog="examples:\n" + examples)
+        if device:
+            s.add_argument("--device", default=DEFAULT_URL, help=f"device URL: hid://VID:PID[/SERIAL] or sim://SCENARIO (default {DEFAULT_URL})")
+        s.set_defaults(func=fn)
+        return s
+
+    s = add("sim", cmd_sim, "run the firmware in the MicroPython VM against a simulated electrode",
+            "  steadytouch sim peel\n  steadytouch sim gel --mode akhtar --out runs/\n"
+            "  steadytouch sim my-disturbance.csv   (columns time_s,contact,hydration)", device=False)
     s.add_argument("scenario", nargs="?", default="peel", help="steady, peel, gel, gel-step, exercise, off, or a .csv file")
-    s.add_argument("--mode", choices=["akhtar", "open", "both"], default="both")
+    s.add_argument("--mode", choices=["akhtar", "open", "both"], default="both", help="controller mode (default: both, side by side)")
     s.add_argument("--channels", type=int, choices=[1, 2, 3, 4], default=1)
     s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--out", default="out", help="folder for the CSV files (default: out/)")
-    s.add_argument("--i0-ua", type=int, default=1000)
-    s.add_argument("--t0-us", type=int, default=1000)
-    s.add_argument("--x-star-ohm", type=int, default=-1670)
-    s.add_argument("--y-star-pc", type=int, default=186000)
-    s.set_defaults(func=cmd_sim)
+    s.add_argument("--out", default="out", help="folder for the CSV and PNG files (default: out/)")
+    s.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    for k, v in (("--i0-ua", 1000), ("--t0-us", 1000), ("--x-star-ohm", -1670), ("--y-star-pc", 186000)):
+        s.add_argument(k, type=int, default=v)
+
+    s = add("monitor", cmd_monitor, "live view of a device's telemetry (10 screens a second)",
+            "  steadytouch monitor\n  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
+    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
+
+    s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
+            "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
+    s.add_argument("file")
+    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
+
+    s = add("audit", cmd_audit, "replay a recording through the host reference; non-zero exit on any mismatch",
+            "  steadytouch audit session.csv", device=False)
+    s.add_argument("file")
+
+    s = add("plot", cmd_plot, "PNG figures from recordings (Fig. 5 layout; --planes for Ep-Rp and Q-Rp)",
+            "  steadytouch plot out/peel-akhtar.csv out/peel-open.csv --out peel.png\n  steadytouch plot session.csv --planes",
+            device=False)
+    s.add_argument("files", nargs="+")
+    s.add_argument("--out")
+    s.add_argument("--channel", type=int, default=0)
+    s.add_argument("--planes", action="store_true")
+
+    for name, fn, help in (("arm", "arm", "start stimulating (the first pulse is I0, T0 and measures Rp0)"),
+                           ("disarm", "disarm", "stop stimulating at once")):
+        s = add(name, _simple(fn, _channel), help, f"  steadytouch {name}\n  steadytouch {name} --channel 1")
+        s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
+
+    s = add("calibrate", cmd_calibrate, "send I0, T0 and the convergence point (x*, y*)",
+            "  steadytouch calibrate --i0-ua 1000 --t0-us 1000 --x-star-ohm -1670 --y-star-pc 186000\n"
+            "  steadytouch calibrate --from calibration.json --i0-ua 1000 --t0-us 1000")
+    for k in ("--i0-ua", "--t0-us", "--x-star-ohm", "--y-star-pc"):
+        s.add_argument(k, type=int)
+    s.add_argument("--from", dest="from_file", help="a calibration.json (from `steadytouch fit`)")
+    s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
+
+    s = add("limits", _simple("limits", lambda a: a.i_min_ua, lambda a: a.i_max_ua, lambda a: a.t_min_us,
+                              lambda a: a.t_max_us, lambda a: a.q_max_pc),
+            "set the soft limits (inside the board's hard limits; disarmed only)",
+            "  steadytouch limits --i-min-ua 500 --i-max-ua 5000 --t-min-us 100 --t-max-us 4000 --q-max-pc 5000000")
+    for k in ("--i-min-ua", "--i-max-ua", "--t-min-us", "--t-max-us", "--q-max-pc"):
+        s.add_argument(k, type=int, required=True)
+
+    s = add("mode", _simple("mode", lambda a: MODES[a.mode], lambda a: a.rate_hz),
+            "choose the controller (akhtar, or open loop for comparison) and the frame rate",
+            "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
+    s.add_argument("mode", choices=list(MODES))
+    s.add_argument("--rate-hz", type=int, default=0, help="10-100 (default: unchanged)")
+
+    add("info", cmd_info, "firmware version, board, limits, mode and each channel's calibration",
+        "  steadytouch info\n  steadytouch info --device sim://steady")
+
+    s = add("flash", cmd_flash, "compile with mpy-cross and deploy to a Pico with mpremote, then read the version back",
+            "  steadytouch flash --dry-run\n  steadytouch flash --port /dev/ttyACM0")
+    s.add_argument("--port", help="serial port of the Pico's MicroPython REPL (default: found by USB VID)")
+    s.add_argument("--build-dir", default="build/device")
+    s.add_argument("--dry-run", action="store_true", help="compile and show what would be copied, touch no board")
+    s.add_argument("--build-only", action="store_true", help="compile only (what `make mpy` does)")
+
+    add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
+        "  steadytouch devices", device=False)
     return p
 
 
@@ -123,12 +425,17 @@ def main(argv=None) -> int:
     a = build_parser().parse_args(argv)
     try:
         return a.func(a)
-    except SimError as e:
+    except USER_ERRORS as e:
         print(f"steadytouch: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("steadytouch: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # FlashError and anything else a user can act on
+        if type(e).__name__ == "FlashError":
+            print(f"steadytouch: {e}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

@@ -123,6 +123,30 @@ class Info:
         return self.result == hp.RES_OK
 
 
+@dataclass(frozen=True)
+class CalInfo:
+    seq: int
+    time_us: int
+    tag: int
+    result: int
+    channel: int
+    flags: int
+    i0_ua: int
+    t0_us: int
+    x_star_ohm: int
+    y_star_pc: int
+    rp0_ohm: int  # 0 until the first pulse after arming measured it
+    mode: int
+
+    @property
+    def ok(self) -> bool:
+        return self.result == hp.RES_OK
+
+    @property
+    def calibrated(self) -> bool:
+        return bool(self.flags & 1)
+
+
 def decode(report: bytes):
     """One 64-byte IN report -> Telemetry, Ack or Info."""
     if len(report) != hp.REPORT_LEN:
@@ -155,6 +179,11 @@ def decode(report: bytes):
             board=bytes(report[hp.O_BOARD : hp.O_BOARD + hp.BOARD_LEN]).rstrip(b"\0").decode("ascii", "replace"),
             result=report[hp.O_RESULT],
         )
+    if typ == hp.REP_CAL:
+        i0, t0 = struct.unpack_from("<HH", report, hp.O_CAL_I0)
+        x, y, rp0 = struct.unpack_from("<iii", report, hp.O_CAL_X)
+        return CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
+                       report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE])
     raise ProtocolError(f"unknown report type 0x{typ:02x}")
 
 
@@ -202,5 +231,5 @@ class Commands:
     def keepalive(self, timeout_ms=0) -> bytes:
         return bytes(hp.cmd_keepalive(bytearray(64), timeout_ms, self._next()))
 
-    def get_info(self) -> bytes:
-        return bytes(hp.cmd_get_info(bytearray(64), self._next()))
+    def get_info(self, ch=hp.CH_ALL) -> bytes:
+        return bytes(hp.cmd_get_info(bytearray(64), self._next(), ch))

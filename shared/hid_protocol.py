@@ -41,6 +41,7 @@ REPORT_DESCRIPTOR = bytes(
 REP_TELEMETRY = const(0x01)
 REP_ACK = const(0x02)
 REP_INFO = const(0x03)
+REP_CAL = const(0x04)  # GET_INFO addressed to one channel: its calibration
 
 # ---- OUT commands (byte 0) ----
 CMD_ARM = const(0x10)
@@ -117,6 +118,15 @@ O_INFO_RATE = const(41)
 O_INFO_KEEPALIVE = const(42)
 O_BOARD = const(44)  # 16 bytes ASCII, NUL padded
 BOARD_LEN = const(16)
+# calibration report (REP_CAL)
+O_CAL_CH = const(12)
+O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured
+O_CAL_I0 = const(14)
+O_CAL_T0 = const(16)
+O_CAL_X = const(20)
+O_CAL_Y = const(24)
+O_CAL_RP0 = const(28)
+O_CAL_MODE = const(32)
 # OUT
 O_OUT_CMD = const(0)
 O_OUT_TAG = const(1)
@@ -245,6 +255,6 @@ def cmd_keepalive(b, timeout_ms=0, tag=0):
     return b
 
 
-def cmd_get_info(b, tag=0):
-    seal(_cmd(b, CMD_GET_INFO, CH_ALL, tag))
+def cmd_get_info(b, tag=0, ch=CH_ALL):
+    seal(_cmd(b, CMD_GET_INFO, ch, tag))
     return b

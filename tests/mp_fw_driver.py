@@ -1,8 +1,11 @@
 # Runs in the MicroPython VM: one Stimulator on the simulated board; reads one
-# hex OUT report per line from stdin, applies it, runs one frame, and prints
+# hex OUT report per line from stdin, delivers it through the board's USB and
+# runs one frame (so it is handled heap-locked, as on the device), and prints
 # "<ack report hex> <state digest>" (the digest covers every setting a command
 # may change). A line "F n" runs n frames and prints the digest.
 import sys
+
+import micropython
 
 import board_config as cfg
 import board_sim
@@ -10,10 +13,9 @@ import sim_electrode
 import stim
 
 clock = board_sim.VirtualClock()
-usb = board_sim.MemoryUSB(keep=False)
+usb = board_sim.MemoryUSB(keep=True)
 board = board_sim.SimBoard(cfg, clock, sim_electrode.scenario("steady"), 2, 1, usb)
 s = stim.Stimulator(board, clock, cfg, 2, 50)
-rx = bytearray(64)
 
 
 def digest():
@@ -25,6 +27,24 @@ def digest():
     return ",".join([str(p) for p in parts])
 
 
+seen = ["", ""]
+handle = s.handle
+
+
+def watched(r, now):
+    # runs inside the frame's heap lock: the digest is taken with the lock lifted
+    # for a moment, the handler itself runs locked
+    micropython.heap_unlock()
+    seen[0] = digest()
+    micropython.heap_lock()
+    res = handle(r, now)
+    micropython.heap_unlock()
+    seen[1] = digest()
+    micropython.heap_lock()
+    return res
+
+
+s.handle = watched
 print("READY " + digest())
 while True:
     line = sys.stdin.readline()
@@ -35,10 +55,10 @@ while True:
         s.run(int(line[2:]))
         print("F " + digest() + " " + str(s.errors))
         continue
-    b = bytes.fromhex(line)
-    for k in range(64):
-        rx[k] = b[k]
-    s.handle(rx, clock.ticks_us())
-    ack = "".join(["%02x" % v for v in s.tx])
-    s.sync_outputs()
-    print(ack + " " + digest() + " " + str(s.errors))
+    usb.sent.clear()
+    usb.inbox.append(bytes.fromhex(line))
+    s.run(1)  # the report is handled inside a real frame, heap-locked like on the board
+    acks = [r for r in usb.sent if r[0] != 1]
+    usb.sent.clear()
+    ack = "".join(["%02x" % v for v in acks[0]]) if len(acks) == 1 else "none"
+    print(ack + " " + seen[0] + " " + seen[1] + " " + str(s.errors))

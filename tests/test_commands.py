@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 import hid_protocol as hp
 import sensation_core as sc
-from steadytouch.protocol import Ack, Commands, Info, decode
+from steadytouch.protocol import Ack, CalInfo, Commands, Info, decode
 
 from conftest import FIRMWARE, ROOT, SHARED
 
@@ -30,11 +30,11 @@ class Device:
     def send(self, report: bytes):
         self.p.stdin.write(report.hex() + "\n")
         self.p.stdin.flush()
-        ack_hex, state, errors = self.p.stdout.readline().split()
+        ack_hex, before, after, errors = self.p.stdout.readline().split()
         self.sent += 1
         assert errors == "0"
-        before, self.state = self.state, state
-        return decode(bytes.fromhex(ack_hex)), before, state
+        self.state = after
+        return decode(bytes.fromhex(ack_hex)), before, after
 
     def frames(self, n):
         self.p.stdin.write(f"F {n}\n")
@@ -82,6 +82,9 @@ def test_every_command_round_trips(dev):
     info, _, _ = dev.send(c.get_info())
     assert (info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us, info.q_max_pc) == (200, 8000, 50, 4000, 8_000_000)
     assert (info.mode, info.rate_hz) == (sc.MODE_OPEN_LOOP, 40)
+    cal, _, _ = dev.send(c.get_info(1))
+    assert isinstance(cal, CalInfo) and cal.channel == 1 and cal.calibrated
+    assert (cal.i0_ua, cal.t0_us, cal.x_star_ohm, cal.y_star_pc) == (1200, 900, -1000, 0)
 
 
 @pytest.mark.parametrize(
@@ -143,7 +146,7 @@ def fuzzed_report(draw):
 def test_fuzzed_reports_change_nothing_unless_valid(dev, reports):
     for r in reports:
         ack, before, after = dev.send(r)
-        assert isinstance(ack, (Ack, Info))
+        assert isinstance(ack, (Ack, Info, CalInfo))
         if ack.result != hp.RES_OK:
             assert before == after, ack.words() if isinstance(ack, Ack) else ack
     dev.frames(2)  # and the loop keeps running (errors == 0 is asserted)

@@ -1,0 +1,88 @@
+"""Audit a recording: replay every recorded pulse through sensation_core on
+CPython (the host reference of the device's own integer law) from the recorded
+calibration and Rp, and list every pulse where the device chose a different
+next I or T. Expected: none — the same integer code runs on both."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import hid_protocol as hp
+import sensation_core as sc
+
+from .record import RecordingError, meta_int
+
+
+AUDIT_COLUMNS = ("mode", "flags", "stop", "next_i_ua", "next_t_us")
+
+
+@dataclass
+class Mismatch:
+    line: int  # data row number, 1-based
+    seq: int
+    channel: int
+    expected: tuple[int, int]
+    recorded: tuple[int, int]
+
+
+@dataclass
+class AuditResult:
+    checked: int
+    mismatches: list[Mismatch]
+    skipped: int  # pulses before the replay had a calibration
+
+
+def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
+    lim = [meta_int(meta, k, path) for k in ("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc")]
+    try:
+        sc.Controller(*lim)
+    except ValueError as e:
+        raise RecordingError(f"{path}: limits in the header are not valid: {e}") from None
+    missing = [k for k in AUDIT_COLUMNS if k not in rows[0]]
+    if missing:
+        raise RecordingError(f"{path}: cannot audit without the column(s) {', '.join(missing)}")
+    ctls: dict[int, sc.Controller] = {}
+    cals: dict[int, tuple] = {}
+    for ch in range(4):
+        if f"ch{ch}_i0_ua" in meta:
+            cal = tuple(meta_int(meta, f"ch{ch}_{k}", path) for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"))
+            cals[ch] = cal
+            c = sc.Controller(*lim)
+            rp0 = int(meta.get(f"ch{ch}_rp0_ohm", "0") or 0)
+            if rp0:
+                c.calibrate(cal[0], cal[1], rp0, cal[2], cal[3])
+            ctls[ch] = c
+    if not cals and "i0_ua" in meta:  # one calibration for all channels
+        cal = tuple(meta_int(meta, k, path) for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"))
+        for ch in range(4):
+            cals[ch] = cal
+            ctls[ch] = sc.Controller(*lim)
+    if not cals:
+        raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
+    checked, skipped, bad = 0, 0, []
+    for n, r in enumerate(rows, start=1):
+        ch = r["channel"]
+        if r["i_ua"] == 0 or ch not in ctls:
+            continue  # no pulse this frame
+        c = ctls[ch]
+        c.set_mode(r["mode"])
+        flags = r["flags"]
+        if flags & hp.FLAG_CALIBRATING:
+            i0, t0, x, y = cals[ch]
+            if sc.RP_MIN_OHM <= r["rp_ohm"] <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
+                c.calibrate(i0, t0, r["rp_ohm"], x, y)
+            else:
+                c.stop(sc.ST_RP_LOW if r["rp_ohm"] < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
+        elif not c.calibrated:
+            skipped += 1
+            continue
+        elif r["stop"] == hp.STOP_ELECTRODE_OFF:
+            c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range
+        else:
+            c.update(r["rp_ohm"])
+        checked += 1
+        exp = (c.i_ua, c.t_us)
+        got = (r["next_i_ua"], r["next_t_us"])
+        if exp != got:
+            bad.append(Mismatch(n, r["seq"], ch, exp, got))
+    return AuditResult(checked, bad, skipped)

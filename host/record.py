@@ -1,0 +1,112 @@
+"""Telemetry recordings: one CSV row per pulse, a metadata header of `# key: value`
+lines, flushed at least every second so an interrupted recording keeps all
+but (at most) its last second and is still readable."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+from .protocol import Telemetry
+
+FORMAT = "steadytouch recording 1"
+COLUMNS = [
+    "seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status", "stop", "mode", "me_ua2ms",
+    "mq_target_fc_per_ohm", "mq_last_fc_per_ohm", "next_i_ua", "next_t_us", "flags", "overruns", "loop_us",
+]
+REQUIRED = ["seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status"]
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read; the message names the file and line."""
+
+
+class Recorder:
+    def __init__(self, path: Path | str, meta: dict, flush_s: float = 1.0):
+        self.path = Path(path)
+        self.f = open(self.path, "w", newline="")
+        self.f.write(f"# {FORMAT}\n")
+        for k, v in meta.items():
+            self.f.write(f"# {k}: {v}\n")
+        self.w = csv.writer(self.f)
+        self.w.writerow(COLUMNS)
+        self.f.flush()
+        self.rows = 0
+        self.flush_s = flush_s
+        self._last_flush = time.monotonic()
+
+    def write(self, t: Telemetry) -> None:
+        self.w.writerow([getattr(t, c) for c in COLUMNS])
+        self.rows += 1
+        now = time.monotonic()
+        if now - self._last_flush >= self.flush_s:
+            self.f.flush()
+            self._last_flush = now
+
+    def close(self) -> None:
+        if not self.f.closed:
+            self.f.flush()
+            self.f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def write_recording(path: Path | str, tel: list[Telemetry], meta: dict) -> None:
+    with Recorder(path, meta) as r:
+        for t in tel:
+            r.write(t)
+
+
+def read_recording(path: Path | str) -> tuple[dict, list[dict]]:
+    """(metadata, rows as dicts of ints); RecordingError naming the line on anything malformed."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise RecordingError(f"{path}: cannot read ({e.strerror})") from None
+    except UnicodeDecodeError:
+        raise RecordingError(f"{path}: not a text file") from None
+    lines = text.splitlines()
+    meta: dict[str, str] = {}
+    k = 0
+    while k < len(lines) and lines[k].startswith("#"):
+        key, sep, val = lines[k][1:].partition(":")
+        if sep:
+            meta[key.strip()] = val.strip()
+        k += 1
+    if k >= len(lines):
+        raise RecordingError(f"{path}: no column header (is it a steadytouch recording?)")
+    header = [h.strip() for h in lines[k].split(",")]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise RecordingError(f"{path} line {k + 1}: missing column(s) {', '.join(missing)}")
+    rows = []
+    for n, line in enumerate(lines[k + 1 :], start=k + 2):
+        if not line.strip():
+            continue
+        cells = line.split(",")
+        if len(cells) != len(header):
+            what = "truncated" if n == len(lines) and len(cells) < len(header) else "malformed"
+            raise RecordingError(f"{path} line {n}: {what} row ({len(cells)} of {len(header)} columns)")
+        try:
+            rows.append({h: int(c) for h, c in zip(header, cells)})
+        except ValueError:
+            bad = next(h for h, c in zip(header, cells) if not c.strip().lstrip("-").isdigit())
+            raise RecordingError(f"{path} line {n}: column {bad} is not a whole number") from None
+    if not rows:
+        raise RecordingError(f"{path}: no pulses recorded")
+    return meta, rows
+
+
+def meta_int(meta: dict, key: str, path="recording") -> int:
+    try:
+        return int(meta[key])
+    except KeyError:
+        raise RecordingError(f"{path}: metadata '{key}' missing from the header") from None
+    except ValueError:
+        raise RecordingError(f"{path}: metadata '{key}' is not a whole number: {meta[key]!r}") from None

@@ -1,0 +1,159 @@
+"""The `steadytouch` command end to end, against sim:// (the firmware in the VM)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from steadytouch.cli import build_parser, main
+from steadytouch.record import RecordingError, read_recording
+
+from conftest import ROOT
+
+EXE = str(Path(sys.executable).parent / "steadytouch")
+AUTO = "auto=1000,1000,-1670,186000"
+
+
+def run(*args, timeout=120):
+    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def test_every_subcommand_has_help_with_examples():
+    p = build_parser()
+    subs = p._subparsers._group_actions[0].choices
+    assert {"sim", "monitor", "record", "audit", "plot", "arm", "disarm", "calibrate", "limits", "mode", "info",
+            "flash", "devices"} <= set(subs)
+    for name, sp in subs.items():
+        assert "examples:" in sp.format_help(), name
+
+
+def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
+    out = tmp_path / "rec.csv"
+    p = run("record", str(out), "--device", f"sim://peel?{AUTO}&realtime=0&frames=400")
+    assert p.returncode == 1 and "device lost: the simulated device stopped (exit code 0)" in p.stderr  # ran to its end
+    meta, rows = read_recording(out)
+    assert meta["firmware"] == "0.1.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
+    assert len(rows) == 800 and {r["channel"] for r in rows} == {0, 1}
+    a = run("audit", str(out))
+    assert a.returncode == 0 and "800 pulses replayed through sensation_core: bit-exact" in a.stdout, a.stdout + a.stderr
+    # a pulse whose I differs from the law is found
+    lines = out.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 300
+    cells = lines[k].split(",")
+    cells[13] = str(int(cells[13]) + 1)  # next_i_ua
+    lines[k] = ",".join(cells)
+    out.write_text("\n".join(lines) + "\n")
+    a = run("audit", str(out))
+    assert a.returncode == 1 and "1 MISMATCH" in a.stdout and "row 300" in a.stdout
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("# x: 1\nseq,time_us\n", "missing column(s) channel, i_ua"),
+        (None, "truncated row"),
+        (None, "column rp_ohm is not a whole number"),
+        ("", "no column header"),
+    ],
+)
+def test_corrupted_or_truncated_csv_is_one_clear_line(tmp_path, text, words):
+    f = tmp_path / "bad.csv"
+    if text is None:
+        good = run("sim", "steady", "--mode", "akhtar", "--out", str(tmp_path), "--no-plot")
+        assert good.returncode == 0, good.stderr
+        lines = (tmp_path / "steady-akhtar.csv").read_text().splitlines()
+        if "truncated" in words:
+            lines[-1] = lines[-1][: len(lines[-1]) // 2]
+        else:
+            c = lines[-5].split(",")
+            c[6] = "12k"
+            lines[-5] = ",".join(c)
+        text = "\n".join(lines)
+    f.write_text(text)
+    p = run("audit", str(f))
+    assert p.returncode == 2 and words in p.stderr and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+
+
+def test_ctrl_c_during_record_leaves_a_readable_file(tmp_path):
+    out = tmp_path / "rec.csv"
+    p = subprocess.Popen([EXE, "record", str(out), "--device", f"sim://steady?{AUTO}"], cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 30
+    while time.time() < deadline and (not out.exists() or out.stat().st_size < 3000):
+        time.sleep(0.2)
+    time.sleep(1.5)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=20)
+    assert p.returncode == 0, stderr
+    assert "saved" in stdout
+    meta, rows = read_recording(out)
+    assert len(rows) >= 100  # ~2 s at 50 Hz x 2 channels
+    assert run("audit", str(out)).returncode == 0
+
+
+def test_device_commands_over_sim():
+    url = "sim://steady?channels=2"
+    p = run("info", "--device", url)
+    assert p.returncode == 0 and "steadytouch firmware 0.1.0 on pico-stmisola, 2 channel(s)" in p.stdout
+    assert "ch0: not calibrated" in p.stdout
+    p = run("arm", "--device", url)
+    assert p.returncode == 2 and "arm: not calibrated (send calibrate first)" in p.stderr
+    p = run("calibrate", "--device", url, "--i0-ua", "50000", "--t0-us", "1000", "--x-star-ohm", "-1670", "--y-star-pc", "0")
+    assert p.returncode == 2 and "calibrate: value out of range" in p.stderr
+    p = run("calibrate", "--device", url, "--i0-ua", "1000")
+    assert p.returncode == 2 and "calibrate needs --t0-us, --x-star-ohm, --y-star-pc" in p.stderr
+    p = run("mode", "open", "--rate-hz", "101", "--device", url)
+    assert p.returncode == 2 and "mode: value out of range" in p.stderr
+    p = run("limits", "--device", url, "--i-min-ua", "500", "--i-max-ua", "20000", "--t-min-us", "100",
+            "--t-max-us", "4000", "--q-max-pc", "5000000")
+    assert p.returncode == 2 and "limits: value out of range" in p.stderr
+
+
+def test_calibrate_from_json_then_arm(tmp_path):
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    j = tmp_path / "calibration.json"
+    j.write_text('{"x_star_ohm": -1650.4, "y_star_pc": 180000}')
+    with open_transport("sim://steady?channels=1") as t:
+        d = Device(t)
+        d.info()
+    # the CLI opens its own simulated device; check it accepts the JSON
+    p = run("calibrate", "--device", "sim://steady?channels=1", "--from", str(j), "--i0-ua", "900", "--t0-us", "800")
+    assert p.returncode == 0 and "calibrate: ok" in p.stdout and "x* -1650 ohm" in p.stdout
+
+
+def test_bad_device_url_is_one_line():
+    p = run("info", "--device", "tcp://nowhere")
+    assert p.returncode == 2 and p.stderr.startswith("steadytouch: unknown device") and "Traceback" not in p.stderr
+    p = run("info", "--device", "sim://nosuch")
+    assert p.returncode == 2 and "unknown scenario 'nosuch'" in p.stderr
+
+
+def test_monitor_shows_every_channel(tmp_path):
+    p = run("monitor", "--seconds", "1.5", "--device", f"sim://peel?{AUTO}")
+    assert p.returncode == 0, p.stderr
+    assert "steadytouch monitor" in p.stdout and "\n 0 stimulating" in p.stdout and "\n 1 stimulating" in p.stdout
+
+
+def test_flash_dry_run_lists_files_and_commands(tmp_path):
+    p = run("flash", "--dry-run", "--build-dir", str(tmp_path / "dev"))
+    assert p.returncode == 0, p.stderr
+    assert "sensation_core.mpy" in p.stdout and "stim.mpy" in p.stdout and "main.py" in p.stdout
+    assert "board_sim" not in p.stdout and "mip install usb-device-hid" in p.stdout
+
+
+def test_sim_writes_csv_png_and_summary(tmp_path):
+    p = run("sim", "peel", "--out", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "peel-akhtar.csv").exists() and (tmp_path / "peel-open.csv").exists()
+    png = (tmp_path / "peel.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20000
+    assert "mQ err akhtar" in p.stdout and "(bound)" in p.stdout
+    p2 = run("plot", str(tmp_path / "peel-akhtar.csv"), "--planes", "--out", str(tmp_path / "x.png"))
+    assert p2.returncode == 0 and (tmp_path / "x-planes.png").exists()
