@@ -20,7 +20,7 @@ from .record import Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
-USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError)
+USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError, RuntimeError)
 MODES = {"akhtar": sc.MODE_AKHTAR, "open": sc.MODE_OPEN_LOOP}
 
 
@@ -141,7 +141,47 @@ def _channel(a):
     return hp.CH_ALL if a.channel is None else a.channel
 
 
+def cmd_calibrate_interactive(a) -> int:
+    from . import fit as F
+    from .participant import write_rows
+    from .session import KeyboardResponder, Session, SimResponder, Stopped
+
+    responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
+    out = Path(a.out)
+    with open_transport(a.device) as t:
+        d = Device(t)
+        s = Session(d, responder, channel=a.channel or 0, present_s=a.present_s)
+        say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
+        try:
+            res = s.run({"weak": a.weak_ua, "strong": a.strong_ua})
+        except Stopped:
+            say("stopped: the device is disarmed; nothing was sent")
+            return 1
+        out.mkdir(parents=True, exist_ok=True)
+        data = out / "session.csv"
+        write_rows(data, res.rows)
+        fitres = F.fit(F.load(data), device_range=True)
+        cal = dict(fitres.calibration(), source=str(data))
+        (out / "calibration.json").write_text(json.dumps(cal, indent=1) + "\n")
+        say(f"{res.presentations} presentations; data -> {data}")
+        say(f"fit: x* = {fitres.x_star_ohm:.0f} ohm, y* = {fitres.y_star_pc:.0f} pC, mean r2 Q-Rp {fitres.mean_r2_q:.3f}, "
+            f"Ep-Rp {fitres.mean_r2_ep:.3f} -> {out / 'calibration.json'}")
+        weak = [r for r in res.rows if r["condition"] == "weak"]
+        op = next(r for r in weak if r["t_us"] == a.t0_us) if any(r["t_us"] == a.t0_us for r in weak) else weak[len(weak) // 2]
+        send = a.send or (a.participant != "sim" and input(
+            f"send the calibration (I0 {op['i_ua']} uA, T0 {op['t_us']} us, x* {cal['x_star_ohm']}, y* {cal['y_star_pc']})? [y/N] ")
+            .strip().lower() == "y")
+        if send:
+            d.mode(sc.MODE_AKHTAR)
+            ack = d.calibrate(op["i_ua"], op["t_us"], cal["x_star_ohm"], cal["y_star_pc"], hp.CH_ALL)
+            say(f"{a.device}: {ack.words()} (I0 {op['i_ua']} uA, T0 {op['t_us']} us, x* {cal['x_star_ohm']} ohm, "
+                f"y* {cal['y_star_pc']} pC); `steadytouch arm` starts stimulating")
+    return 0
+
+
 def cmd_calibrate(a) -> int:
+    if a.interactive:
+        return cmd_calibrate_interactive(a)
     vals = {"i0_ua": a.i0_ua, "t0_us": a.t0_us, "x_star_ohm": a.x_star_ohm, "y_star_pc": a.y_star_pc}
     if a.from_file:
         try:
@@ -333,6 +373,70 @@ def cmd_flash(a) -> int:
     return 0
 
 
+# ------------------------------------------------------------ calibration data
+def cmd_fit(a) -> int:
+    from . import fit as F
+
+    sets = F.load(a.file)
+    res = F.fit(sets)
+    out = Path(a.out)
+    cal = dict(res.calibration(), source=str(a.file))
+    if a.json:
+        print(json.dumps({"calibration": cal, "by_condition": res.by_condition, "per_set": res.per_set}, indent=1))
+    else:
+        say(f"{a.file}: {res.n_sets} participant x condition data sets")
+        say(f"convergence point: x* = {res.x_star_ohm:.0f} ohm, y* = {res.y_star_pc:.0f} pC "
+            f"({res.x_star_ohm / 1e3:.2f} kohm, {res.y_star_pc / 1e6:.3f} uC); mean r2 Q-Rp {res.mean_r2_q:.3f}, "
+            f"Ep-Rp {res.mean_r2_ep:.3f}")
+        say("one-tailed Wilcoxon signed-rank test of r2 > 0.7 per condition, Holm-Bonferroni corrected:")
+        for line in F.table(res):
+            say("  " + line)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calibration.json").write_text(json.dumps(cal, indent=1) + "\n")
+    png = F.figure(sets, res, out / "fit.png")
+    if not a.json:
+        say(f"wrote {out / 'calibration.json'} and {png}")
+    return 0
+
+
+def cmd_validate(a) -> int:
+    from . import fit as F
+
+    if a.calibration:
+        try:
+            c = json.loads(Path(a.calibration).read_text())
+            x, y = float(c["x_star_ohm"]), float(c["y_star_pc"])
+        except (OSError, ValueError, KeyError) as e:
+            raise F.DataError(f"{a.calibration}: needs x_star_ohm and y_star_pc ({e})") from None
+    else:
+        x, y = a.x_star_ohm, a.y_star_pc
+    sets = F.load(a.file, exp2=True)
+    r = F.validate(sets, x, y)
+    if a.json:
+        print(json.dumps(r, indent=1))
+        return 0
+    say(f"{a.file}: {len(sets)} trials; the controller's lines from each trial's initial point with "
+        f"(x*, y*) = ({x:.0f} ohm, {y:.0f} pC)")
+    say(f"mean r2 of the chosen points: Ep-Rp {r['mean_r2_ep']:.3f}, Q-Rp {r['mean_r2_q']:.3f}")
+    for c, v in sorted(r["by_condition"].items()):
+        say(f"  {c:<24} n={v['n']:>3}  Ep {v['mean_r2_ep']:.3f} (Z {v['ep']['z']:.2f}, p {v['ep']['p_holm']:.4f})  "
+            f"Q {v['mean_r2_q']:.3f} (Z {v['q']['z']:.2f}, p {v['q']['p_holm']:.4f})")
+    return 0
+
+
+def cmd_synth(a) -> int:
+    from .participant import SimParticipant, write_rows
+
+    sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_rows(out / "exp1.csv", sp.exp1_rows(a.participants))
+    write_rows(out / "exp2.csv", sp.exp2_rows(a.participants))
+    say(f"simulated {a.participants} participants (true x* {a.x_star_ohm} ohm, y* {a.y_star_pc} pC): "
+        f"{out / 'exp1.csv'} (Exp. 1), {out / 'exp2.csv'} (Exp. 2)")
+    return 0
+
+
 # ------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
     raw = argparse.RawDescriptionHelpFormatter
@@ -387,11 +491,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("calibrate", cmd_calibrate, "send I0, T0 and the convergence point (x*, y*)",
             "  steadytouch calibrate --i0-ua 1000 --t0-us 1000 --x-star-ohm -1670 --y-star-pc 186000\n"
-            "  steadytouch calibrate --from calibration.json --i0-ua 1000 --t0-us 1000")
+            "  steadytouch calibrate --from calibration.json --i0-ua 1000 --t0-us 1000\n"
+            "  steadytouch calibrate --interactive --device hid://1209:0001\n"
+            "  steadytouch calibrate --interactive --participant sim --device sim://steady --send")
     for k in ("--i0-ua", "--t0-us", "--x-star-ohm", "--y-star-pc"):
         s.add_argument(k, type=int)
     s.add_argument("--from", dest="from_file", help="a calibration.json (from `steadytouch fit`)")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
+    g = s.add_argument_group("guided session (the paper's Exp. 1 protocol)")
+    g.add_argument("--interactive", action="store_true", help="match sensations with keys, fit, offer to send")
+    g.add_argument("--participant", choices=["person", "sim"], default="person", help="sim: the simulated participant answers")
+    g.add_argument("--weak-ua", type=int, default=1500, help="reference current of the weak level at 200 us")
+    g.add_argument("--strong-ua", type=int, default=2700, help="reference current of the strong level at 200 us")
+    g.add_argument("--present-s", type=float, default=0.5, help="length of each presentation (s)")
+    g.add_argument("--send", action="store_true", help="send the fitted calibration without asking")
+    g.add_argument("--out", default="out", help="folder for session.csv and calibration.json")
+    g.add_argument("--seed", type=int, default=1)
 
     s = add("limits", _simple("limits", lambda a: a.i_min_ua, lambda a: a.i_max_ua, lambda a: a.t_min_us,
                               lambda a: a.t_max_us, lambda a: a.q_max_pc),
@@ -415,6 +530,29 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--build-dir", default="build/device")
     s.add_argument("--dry-run", action="store_true", help="compile and show what would be copied, touch no board")
     s.add_argument("--build-only", action="store_true", help="compile only (what `make mpy` does)")
+
+    s = add("fit", cmd_fit, "fit the lines of constant sensation and their convergence point (x*, y*) (Exp. 1)",
+            "  steadytouch fit exp1.csv\n  steadytouch fit exp1.csv --json --out lab/", device=False)
+    s.add_argument("file")
+    s.add_argument("--out", default="out", help="folder for calibration.json and fit.png (default out/)")
+    s.add_argument("--json", action="store_true", help="print the results as JSON")
+
+    s = add("validate", cmd_validate, "r2 of participant-chosen points against the controller's lines (Exp. 2)",
+            "  steadytouch validate exp2.csv --calibration out/calibration.json", device=False)
+    s.add_argument("file")
+    s.add_argument("--calibration", help="calibration.json from `fit` (else --x-star-ohm/--y-star-pc)")
+    s.add_argument("--x-star-ohm", type=float, default=-1670.0)
+    s.add_argument("--y-star-pc", type=float, default=186000.0)
+    s.add_argument("--json", action="store_true")
+
+    s = add("synth", cmd_synth, "simulated participants: Exp. 1 and Exp. 2 data with a known convergence point",
+            "  steadytouch synth --out data/\n  steadytouch synth --participants 20 --seed 7", device=False)
+    s.add_argument("--out", default="out")
+    s.add_argument("--participants", type=int, default=10)
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--x-star-ohm", type=float, default=-1670.0)
+    s.add_argument("--y-star-pc", type=float, default=186000.0)
+    s.add_argument("--rp-noise", type=float, default=0.01, help="relative Rp measurement noise (default 0.01)")
 
     add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
         "  steadytouch devices", device=False)
