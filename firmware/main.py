@@ -4,7 +4,7 @@
 # on stdout, commands from stdin:
 #   micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels N]
 #       [--rate HZ] [--frames N] [--seed S] [--realtime] [--start-us T]
-#       [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|open]
+#       [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]
 import sys
 
 import board_config as cfg
@@ -13,9 +13,11 @@ import sensation_core as sc
 import stim
 
 USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels 1-4] [--rate 10-100]"
-         " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|open]")
+         " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]")
 
 
+MODE_NAMES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
+              "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR, "akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST}
 _VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto")
 
 
@@ -63,9 +65,9 @@ def parse(argv):
         elif a == "--start-us":
             o["start"] = _int(a, v, 0, (1 << 30) - 1)
         elif a == "--mode":
-            if v not in ("akhtar", "open"):
-                raise UsageError("--mode must be akhtar or open, not %r" % v)
-            o["mode"] = sc.MODE_AKHTAR if v == "akhtar" else sc.MODE_OPEN_LOOP
+            if v not in MODE_NAMES:
+                raise UsageError("--mode must be one of %s, not %r" % (", ".join(MODE_NAMES), v))
+            o["mode"] = MODE_NAMES[v]
         elif a == "--auto":
             parts = v.split(",")
             if len(parts) != 4:

@@ -268,6 +268,7 @@ class Stimulator:
             ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
             c.calibrating = False
         else:
+            ctl.delivered(c.di, c.dt)  # a held proposal was not what was measured
             if ctl.update(rp) & sc.ST_FAULT_MASK:
                 self._latch(c, hp.STOP_RP_FAULT)
                 return
@@ -479,7 +480,7 @@ class Stimulator:
         if cmd == hp.CMD_SET_MODE:
             mode = r[hp.O_ARG]
             rate = r[hp.O_ARG + 1]
-            if mode != sc.MODE_AKHTAR and mode != sc.MODE_OPEN_LOOP:
+            if not sc.MODE_OPEN_LOOP <= mode <= sc.MODE_FAST:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
             if rate and not (RATE_MIN_HZ <= rate <= RATE_MAX_HZ):
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)

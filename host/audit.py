@@ -79,6 +79,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         elif r["stop"] == hp.STOP_ELECTRODE_OFF:
             c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range
         else:
+            c.delivered(r["i_ua"], r["t_us"])
             c.update(r["rp_ohm"])
         checked += 1
         exp = (c.i_ua, c.t_us)

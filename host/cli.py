@@ -21,7 +21,9 @@ from .simrun import Calib, SimError, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
 USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError, RuntimeError)
-MODES = {"akhtar": sc.MODE_AKHTAR, "open": sc.MODE_OPEN_LOOP}
+MODES = {"akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST, "open": sc.MODE_OPEN_LOOP,
+         "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY, "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR}
+MODE_WORDS = {v: k for k, v in MODES.items()}
 
 
 def say(*a):
@@ -113,7 +115,7 @@ def cmd_info(a) -> int:
         say(f"  hard limits: I <= {i.hard_i_max_ua} uA, T <= {i.hard_t_max_us} us, Q <= {i.hard_q_max_pc} pC, "
             f"compliance {i.compliance_mv / 1000:g} V")
         say(f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC")
-        say(f"  mode {'akhtar' if i.mode == sc.MODE_AKHTAR else 'open loop'}, {i.rate_hz} Hz, "
+        say(f"  mode {MODE_WORDS.get(i.mode, i.mode)}, {i.rate_hz} Hz, "
             f"keep-alive {'off' if not i.keepalive_ms else str(i.keepalive_ms) + ' ms'}")
         for ch in range(i.n_channels):
             c = d.calibration(ch)
@@ -310,7 +312,7 @@ def cmd_plot(a) -> int:
     recs = []
     for f in a.files:
         meta, rows = read_recording(f)
-        title = {"akhtar": "with the controller", "open": "open loop"}.get(meta.get("mode", ""), Path(f).stem)
+        title = {"akhtar": "with the controller", "open": "open loop"}.get(meta.get("mode", ""), meta.get("mode") or Path(f).stem)
         recs.append((title, meta, rows))
     out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
     say(f"figure -> {fig5(recs, out, a.channel)}")
@@ -455,7 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
             "  steadytouch sim peel\n  steadytouch sim gel --mode akhtar --out runs/\n"
             "  steadytouch sim my-disturbance.csv   (columns time_s,contact,hydration)", device=False)
     s.add_argument("scenario", nargs="?", default="peel", help="steady, peel, gel, gel-step, exercise, off, or a .csv file")
-    s.add_argument("--mode", choices=["akhtar", "open", "both"], default="both", help="controller mode (default: both, side by side)")
+    s.add_argument("--mode", choices=list(MODES) + ["both"], default="both",
+                   help="controller mode (default: both = akhtar and open loop, side by side)")
     s.add_argument("--channels", type=int, choices=[1, 2, 3, 4], default=1)
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--out", default="out", help="folder for the CSV and PNG files (default: out/)")
@@ -516,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument(k, type=int, required=True)
 
     s = add("mode", _simple("mode", lambda a: MODES[a.mode], lambda a: a.rate_hz),
-            "choose the controller (akhtar, or open loop for comparison) and the frame rate",
+            "choose the controller (akhtar: the paper; fast: the secant variant; open, charge, energy, pwlinear: baselines) and the frame rate",
             "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
     s.add_argument("mode", choices=list(MODES))
     s.add_argument("--rate-hz", type=int, default=0, help="10-100 (default: unchanged)")

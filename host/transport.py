@@ -208,8 +208,8 @@ def open_transport(url: str, hid_module=None) -> Transport:
             raise TransportError(f"bad device URL {url!r}: channels, seed and frames take whole numbers") from None
         realtime = _flag(q, "realtime", "1") not in ("0", "no", "false")
         mode = _flag(q, "mode", "akhtar")
-        if mode not in ("akhtar", "open"):
-            raise TransportError(f"bad device URL {url!r}: mode is akhtar or open")
+        if mode not in ("akhtar", "fast", "open", "charge", "energy", "pwlinear"):
+            raise TransportError(f"bad device URL {url!r}: mode is akhtar, fast, open, charge, energy or pwlinear")
         return SimTransport(scenario, channels, seed, realtime, _flag(q, "auto", None), mode, frames)
     raise TransportError(f"unknown device {url!r}: use {DEFAULT_URL} (the board over USB) or sim://SCENARIO "
                          "(the simulator, e.g. sim://peel)")

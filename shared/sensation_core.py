@@ -45,8 +45,12 @@ ST_FAULT_MASK = const(0x1E0)
 
 # ---- controller modes (Controller.set_mode) ----
 MODE_OPEN_LOOP = const(0)  # fixed I0, T0 (for comparison); faults still stop
+MODE_CONSTANT_CHARGE = const(1)  # Kantor: I*T held at I0*T0 (split as at calibration)
+MODE_CONSTANT_ENERGY = const(2)  # Tachi: Vp*I*T held, I fixed: T = T0 * Rp0 / Rp
+MODE_PULSE_WIDTH_LINEAR = const(3)  # Kajimoto-style: T = a + b*Rp, I fixed
 MODE_AKHTAR = const(4)  # the paper's Eqs. 1-4 (default)
-MODES = (MODE_OPEN_LOOP, MODE_AKHTAR)
+MODE_FAST = const(5)  # the paper's target, reached by a secant step (docs/controller.md)
+MODES = (MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE, MODE_CONSTANT_ENERGY, MODE_PULSE_WIDTH_LINEAR, MODE_AKHTAR, MODE_FAST)
 
 _M11 = const(0x7FF)
 _M15 = const(0x7FFF)
@@ -153,6 +157,20 @@ def _t_from_qf(qf, i0, t0):
     return (sq + (t0 << 2)) // (t0 << 3)
 
 
+def _frac12(x, den):
+    """floor(x * 2**12 / den) for 0 <= x < 2**27, 1 <= den < 2**25 (4-bit steps)."""
+    q = x // den
+    r = x - q * den
+    k = 0
+    while k < 3:
+        r = r << 4
+        d = r // den
+        q = (q << 4) + d
+        r = r - d * den
+        k += 1
+    return q
+
+
 def _check(name, v, lo, hi):
     if not (lo <= v <= hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
@@ -213,6 +231,11 @@ class Controller:
         self._y16 = 0  # 16 y*
         self._qcap = 0  # 16 q_max
         self._pcap = 0  # 16 (q_max - y*)
+        self._fq = 0  # MODE_FAST: charge (pC) and Rp of the pulse before the last one
+        self._frp = 0
+        self._fok = 0  # 1: that pulse was a clean step (no fault, no bound)
+        self._fjump = 0  # 1: the last step was a secant jump (the next one is not)
+        self.fast_jumps = 0  # telemetry/diagnostics: secant jumps taken
 
     def calibrate(self, i0_ua, t0_us, rp0_ohm, x_star_ohm, y_star_pc):
         """Set mE and mQ from a first pulse (i0, t0) that felt right, Rp0 on it.
@@ -248,6 +271,8 @@ class Controller:
         self.me_ua2ms = _div_small(eh, el, 1000)
         self.mq_target_fc_per_ohm = _muldiv(self._a, 1000, self._d0, 0, _MQ_CAP)
         self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
+        self._fok = 0
+        self._fjump = 0
         self.rp_ohm = rp0_ohm
         self.i_ua = i0_ua
         self.t_us = t0_us
@@ -255,13 +280,23 @@ class Controller:
         self.calibrated = True
 
     def set_mode(self, mode):
-        """Select MODE_AKHTAR (default) or MODE_OPEN_LOOP; ValueError otherwise."""
-        if mode != MODE_AKHTAR and mode != MODE_OPEN_LOOP:
-            raise ValueError("mode=%d not supported" % mode)
+        """Select one of MODES (MODE_AKHTAR is the default); ValueError otherwise."""
+        if not MODE_OPEN_LOOP <= mode <= MODE_FAST:
+            raise ValueError("mode=%d out of range [%d, %d]" % (mode, MODE_OPEN_LOOP, MODE_FAST))
+        if mode != self.mode:
+            self._fok = 0
         self.mode = mode
+
+    def delivered(self, i_ua, t_us):
+        """Tell the controller the pulse actually delivered, when it differs from
+        its own last output (the firmware's supervisor may hold a proposal);
+        update() then measures mQ, and MODE_FAST its secant, against it."""
+        self.i_ua = i_ua
+        self.t_us = t_us
 
     def stop(self, status):
         """Next pulse: none (i_ua = t_us = 0), with the given fault status."""
+        self._fok = 0
         self.i_ua = 0
         self.t_us = 0
         self.status = status
@@ -288,15 +323,106 @@ class Controller:
                 self.mq_last_fc_per_ohm = -_muldiv(-n, 1000, d, 0, _MQ_CAP)
         else:
             self.mq_last_fc_per_ohm = 0
-        if self.mode == MODE_OPEN_LOOP:
-            self.i_ua = self.i0_ua
-            self.t_us = self.t0_us
-            self.status = ST_OK
-            return ST_OK
+        mode = self.mode
+        q_k = self.i_ua * self.t_us  # the pulse this Rp was measured on
+        if mode < MODE_AKHTAR:
+            return self._fixed_current(mode, rp_ohm, d)
         # Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max
         qf = self._y16 + _muldiv(self._a, d, self._d0, 4, self._pcap)
         if qf <= 0:
+            self._fok = 0
             return self.stop(ST_Q_NONPOS)
+        if mode == MODE_FAST:
+            qf = self._fast(qf, q_k, rp_ohm)
+        st = self._from_q(qf)
+        # MODE_FAST remembers this pulse for the next secant
+        self._fq = q_k
+        self._frp = rp_ohm
+        self._fok = 1 if (st == ST_OK and q_k > 0) else 0
+        return st
+
+    def _fixed_current(self, mode, rp_ohm, d):
+        """The baseline laws: I = I0; T from the mode's law, then the bounds."""
+        t0 = self.t0_us
+        t = t0  # MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE (I0 * T0 held)
+        if mode == MODE_CONSTANT_ENERGY:  # Rp I0^2 T = Rp0 I0^2 T0
+            t = _muldiv(t0, self.rp0_ohm, rp_ohm, 1, _MQ_CAP)
+            t = (t + 1) >> 1  # rounded
+        elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
+            dr = rp_ohm - self.rp0_ohm
+            x = _muldiv(self._a, dr if dr >= 0 else -dr, self._d0, 1, _MQ_CAP)  # 2 mQ |dRp| in pC
+            x = (x + (self.i0_ua >> 1)) // self.i0_ua
+            t = t0 + x if dr >= 0 else t0 - x
+        i = self.i0_ua
+        st = ST_OK
+        if t > self.t_max_us:
+            t = self.t_max_us
+            st = ST_T_MAX
+        elif t < self.t_min_us:
+            t = self.t_min_us
+            st = ST_T_MIN
+        if i * t > self.q_max_pc:
+            t = self.q_max_pc // i
+            st |= ST_Q_MAX
+        self.i_ua = i
+        self.t_us = t
+        self.status = st
+        return st
+
+    def _fast(self, qf, q_k, rp_ohm):
+        """MODE_FAST: a secant (Newton) step towards the self-consistent charge.
+
+        With the skin's response to charge along the mE curve linearised from the
+        last two pulses, slope s = dRp/dQ, the fixed point of Q = L(Rp(Q)) is
+        Q* = (L(Rp_k) - G Q_k) / (1 - G), G = mQ s. Taken only when trustworthy
+        (docs/controller.md), else the paper's step L(Rp_k) (= qf) is returned.
+        """
+        if not self._fok or q_k <= 0:
+            self._fjump = 0
+            return qf
+        dq = q_k - self._fq
+        adq = dq if dq >= 0 else -dq
+        if adq < 64 or adq < (q_k >> 5):  # too little excitation: the secant is noise
+            return qf
+        dr = rp_ohm - self._frp
+        x = _muldiv(self._a, dr if dr >= 0 else -dr, self._d0, 0, _MQ_CAP)  # mQ |dRp| (pC)
+        if x >= adq << 1:  # |G| >= 2: the linear model is not trustworthy
+            return qf
+        g = _frac12(x, adq)  # |G| in Q.12
+        if (dr < 0) != (dq < 0):
+            g = -g
+        if g > 3276 or g < -6144:  # G outside [-1.5, 0.8]: no stable fixed point nearby
+            return qf
+        lq = qf >> 4  # L(Rp_k) in pC
+        gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
+        n = lq - gq
+        if n <= 0:
+            return qf
+        den = 4096 - g  # (1 - G) in Q.12, in [819, 10240]
+        h = n // den
+        q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < 2**29
+        if q_new > self.q_max_pc:
+            q_new = self._qcap + 1  # above q_max: _from_q clamps and flags it
+        else:
+            q_new = q_new << 4
+        base = q_k << 4
+        step = qf - base  # the paper's step, 1/16 pC
+        jump = q_new - base
+        if step == 0 or (jump > 0) != (step > 0):
+            return qf  # not the paper's direction: keep the paper's step
+        if step > 0:
+            if step < 0x8000000 and jump > step << 2:  # at most 4 paper steps
+                q_new = base + (step << 2)
+        elif -step < 0x8000000 and -jump > -(step << 2):
+            q_new = base + (step << 2)
+        if q_new <= 0:
+            return qf
+        self._fjump = 1
+        self.fast_jumps += 1
+        return q_new
+
+    def _from_q(self, qf):
+        """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0)."""
         st = ST_OK
         if qf > self._qcap:
             qf = self._qcap

@@ -94,7 +94,7 @@ def test_every_command_round_trips(dev):
         (lambda c: c.set_limits(200, 8000, 50, 8001, 8_000_000), hp.O_ARG + 6),
         (lambda c: c.set_limits(200, 8000, 50, 4000, 10_000_001), hp.O_ARG + 8),
         (lambda c: c.set_limits(0, 8000, 50, 4000, 8_000_000), hp.O_ARG),
-        (lambda c: c.set_mode(3), hp.O_ARG),
+        (lambda c: c.set_mode(6), hp.O_ARG),
         (lambda c: c.set_mode(sc.MODE_AKHTAR, 101), hp.O_ARG + 1),
         (lambda c: c.set_mode(sc.MODE_AKHTAR, 9), hp.O_ARG + 1),
         (lambda c: c.keepalive(20), hp.O_ARG),

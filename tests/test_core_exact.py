@@ -1,6 +1,7 @@
 """The integer core against the exact (Fraction) reference of the same law."""
 
 import itertools
+
 from fractions import Fraction
 
 import pytest
@@ -259,3 +260,57 @@ def test_float_reference_agrees_with_exact(data):
         assert fl["status"][k] == ex.status
         assert fl["i_ua"][k] == pytest.approx(float(ex.i_ua), rel=1e-9, abs=1e-9)
         assert fl["t_us"][k] == pytest.approx(float(ex.t_us), rel=1e-9, abs=1e-9)
+
+
+# ---------------------------------------------------------------- every mode
+@settings(max_examples=400)
+@given(scenario(max_updates=20), st.sampled_from(sc.MODES))
+def test_every_mode_obeys_the_safety_invariants(case, mode):
+    lim, cal, rps = case
+    c = make(lim, cal)
+    c.set_mode(mode)
+    for rp in rps:
+        st_ = c.update(rp)
+        check_invariants(c, lim)
+        if sc.RP_MIN_OHM <= rp <= sc.RP_MAX_OHM:
+            assert not st_ & (sc.ST_RP_LOW | sc.ST_RP_HIGH)
+        else:
+            assert c.i_ua == 0
+
+
+@settings(max_examples=300)
+@given(st.data())
+def test_baseline_laws(data):
+    cal = data.draw(calibration(WIDE))
+    rp = data.draw(rp_valid)
+    c = make(WIDE, cal)
+    c.set_mode(sc.MODE_CONSTANT_CHARGE)  # Kantor: I T held (and split as calibrated)
+    c.update(rp)
+    assert (c.i_ua, c.t_us) == (cal.i0_ua, cal.t0_us)
+    c.set_mode(sc.MODE_CONSTANT_ENERGY)  # Tachi: Vp I T = Rp I^2 T held with I = I0
+    c.update(rp)
+    t_exact = Fraction(cal.t0_us * cal.rp0_ohm, rp)
+    assert c.i_ua == cal.i0_ua
+    if 1 < t_exact < sc.T_LIMIT_US - 1 and cal.i0_ua * t_exact < sc.Q_LIMIT_PC - cal.i0_ua:
+        assert abs(c.t_us - t_exact) <= Fraction(1, 2) + Fraction(1, 100)
+    c.set_mode(sc.MODE_PULSE_WIDTH_LINEAR)  # T = T0 + (dT/dRp at Rp0) (Rp - Rp0)
+    c.update(rp)
+    b = 2 * cal.mq / cal.i0_ua
+    t_lin = cal.t0_us + b * (rp - cal.rp0_ohm)
+    if 2 < t_lin < sc.T_LIMIT_US - 2 and cal.i0_ua * t_lin < sc.Q_LIMIT_PC - 2 * cal.i0_ua:
+        assert abs(c.t_us - t_lin) <= 1
+
+
+def test_fast_mode_starts_with_the_papers_step_and_then_jumps():
+    cal = Calibration(1000, 1000, 30000, -1670, 186000)
+    a, f = make(WIDE, cal), make(WIDE, cal)
+    f.set_mode(sc.MODE_FAST)
+    a.update(20000)
+    f.update(20000)  # no excitation yet: exactly the paper's step
+    assert (f.i_ua, f.t_us) == (a.i_ua, a.t_us) and f.fast_jumps == 0
+    # the skin answers the new pulse with a further drop (Rp falls as I rises): the secant jumps further
+    a.update(17000)
+    f.update(17000)
+    assert f.fast_jumps == 1
+    assert f.i_ua > a.i_ua and f.t_us < a.t_us  # same direction as the paper, further
+    assert f.i_ua ** 2 * f.t_us == pytest.approx(cal.i0_ua**2 * cal.t0_us, rel=0.01)  # still on the mE curve

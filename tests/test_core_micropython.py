@@ -88,6 +88,8 @@ def loop(N):
     n = 0
     rp = 30000
     while n < N:
+        if n % 500 == 0:
+            c.set_mode(sc.MODES[(n // 500) % len(sc.MODES)])  # every mode, in turn
         rp = 3000 + (rp * 7 + n * 131) % 120000  # wanders over the whole valid range
         if n % 997 == 0:
             rp = 250000  # faults too
@@ -113,6 +115,8 @@ main()
 
 
 def test_update_allocates_nothing_under_heap_lock(micropython, core_mpy_dir, tmp_path):
+    """10 000 updates cycling through every mode (set_mode itself runs outside the loop's lock only
+    in the sense that it allocates nothing either: it is inside the locked loop here)."""
     script = tmp_path / "heaplock.py"
     script.write_text(HEAP_LOCK_SCRIPT)
     r = run_mp(micropython, script, [core_mpy_dir])

@@ -5,6 +5,7 @@ import textwrap
 
 import pytest
 from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from steadytouch.rangecheck import RangeError, load_instrumented
 
@@ -14,9 +15,11 @@ from strategies import scenario
 CORE, TRACK = load_instrumented(SHARED / "sensation_core.py", "sensation_core_checked")
 
 
-def run_case(lim, cal, rps):
+def run_case(lim, cal, rps, mode=None):
     c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
     c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    if mode is not None:
+        c.set_mode(mode)
     for rp in rps:
         c.update(rp)
         CORE.rp_from_vp(min(max(rp, 0), CORE.VP_LIMIT_MV), lim.i_max_ua)
@@ -40,9 +43,10 @@ def test_instrumentation_catches_an_overflow(tmp_path):
 
 
 @settings(max_examples=1500)
-@given(scenario(max_updates=20))
-def test_intermediates_below_2_30(case):
-    run_case(*case)
+@given(scenario(max_updates=20), st.sampled_from(CORE.MODES))
+def test_intermediates_below_2_30(case, mode):
+    """Every mode, over hypothesis scenarios (MODE_FAST's secant needs sequences: up to 20 updates)."""
+    run_case(*case, mode=mode)
 
 
 def test_intermediates_below_2_30_at_corners():
@@ -66,7 +70,10 @@ def test_intermediates_below_2_30_at_corners():
             if i0 * t0 > lim.q_max_pc:
                 continue
             for y in {0, i0 * t0 // 2, i0 * t0 - 1}:
-                run_case(lim, Calibration(i0, t0, rp0, x, y), [500, 200000, rp0, 499, 200001, 1 << 29, -(1 << 29)])
+                for mode in CORE.MODES:
+                    run_case(lim, Calibration(i0, t0, rp0, x, y),
+                             [500, 200000, rp0, 499, 200001, 1 << 29, -(1 << 29), 500, 800, 200000, 150000, 500],
+                             mode)
                 n += 1
     assert n > 100
     assert TRACK.max_abs < 1 << 30

@@ -1,0 +1,232 @@
+"""Every controller mode x every simulated disturbance, on the simulated electrode.
+
+Run: .venv/bin/python bench/controllers.py [--noise 0] [--plots docs/img]
+
+The integer core (shared/sensation_core.py, CPython) drives the electrode model
+(firmware/sim_electrode.py) pulse by pulse; Rp is read as the model's
+end-of-pulse value rounded to 1 ohm (plus Gaussian noise if --noise, relative).
+Metrics per run (docs/performance.md explains them):
+- settle: pulses after a disturbance until |mQ - target| stays below the
+  threshold (25 fC/ohm = 2.5e-5 uC/kohm, or the resolution of the pulse there:
+  the mQ change of 0.5 us and 0.5 uA, if larger); pulse 0 is the first pulse
+  measured on the changed skin, so 1 is the physical limit; "-" never settles;
+- mQ / mE RMS and peak relative error over the run (pulses with a pulse);
+- overshoot: the largest current and charge beyond the range between their
+  values before the disturbance and after settling, in % of that end value;
+- floor: pulses held at a sensation floor (I at i_min or T at t_min).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path[:0] = [str(ROOT / "shared"), str(ROOT / "firmware")]
+import sensation_core as sc  # noqa: E402
+from sim_electrode import Electrode  # noqa: E402
+
+X, Y = -1670, 186000
+LIMITS = (100, 10000, 50, 8000, 10_000_000)
+MODE_NAMES = {sc.MODE_OPEN_LOOP: "open", sc.MODE_CONSTANT_CHARGE: "charge", sc.MODE_CONSTANT_ENERGY: "energy",
+              sc.MODE_PULSE_WIDTH_LINEAR: "pwlinear", sc.MODE_AKHTAR: "akhtar", sc.MODE_FAST: "fast"}
+
+
+@dataclass
+class Event:
+    pulse: int  # the first pulse measured on the changed skin
+    contact: float | None = None
+    h: float | None = None
+    h_tau_pulses: float = 0.0  # hydration relaxes with this time constant (pulses); 0 = a step
+
+
+def scenario_events(name):
+    if name == "gel":
+        return [Event(50, h=0.3, h_tau_pulses=50), Event(800, h=0.7, h_tau_pulses=100)], 1600
+    if name == "gel-step":
+        return [Event(50, h=0.3), Event(250, h=0.7)], 450
+    if name.startswith("peel"):
+        return [Event(50, contact=0.75), Event(300, contact=0.5), Event(550, contact=0.25), Event(800, contact=1.0)], 1050
+    if name == "exercise":  # 5 min stairs (h -> 0.4, tau 2 min), 10 min rest (tau 8 min), at 50 Hz
+        return [Event(100, h=0.4, h_tau_pulses=6000), Event(15100, h=1.0, h_tau_pulses=24000)], 45100
+    if name == "off":
+        return [Event(50, contact=0.0)], 100
+    raise ValueError(name)
+
+
+def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0):
+    rng = np.random.default_rng(seed)
+    e = Electrode()
+    e.h = h_start
+    c = sc.Controller(*LIMITS)
+    rp0 = round(e.rp_kohm(i0, t0) * 1000)
+    c.calibrate(i0, t0, rp0, X, Y)
+    c.set_mode(mode)
+    h_target, tau = e.h, 0.0
+    rows = []
+    ev = {x.pulse: x for x in events}
+    for k in range(n):
+        if k in ev:
+            x = ev[k]
+            if x.contact is not None:
+                e.contact = x.contact
+            if x.h is not None:
+                h_target, tau = x.h, x.h_tau_pulses
+                if tau == 0:
+                    e.h = h_target
+        if tau > 0:
+            e.h += (h_target - e.h) * (1 - math.exp(-1 / tau))
+        i, t = c.i_ua, c.t_us
+        if i == 0:
+            rows.append((k, 0, 0, 0, float("nan"), c.status))
+            continue
+        rp_k = e.rp_kohm(i, t) * 1000
+        if not math.isfinite(rp_k) or rp_k > 1e9:
+            rp = sc.RP_OVER
+        else:
+            rp = round(rp_k * (1 + noise * rng.normal()))
+        mq = (i * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan")
+        rows.append((k, i, t, rp, mq, c.status))
+        c.update(rp)
+    return np.array(rows, dtype=float), c.mq_target_fc_per_ohm, c.me_ua2ms * 1000
+
+
+def metrics(rows, target, me, events, n):
+    k, i, t, rp, mq, st = rows.T
+    on = i > 0
+    err = np.where(on, mq - target, np.nan)
+    thr = np.maximum(25.0, (0.5 * i + 0.5 * t) * 1000 / np.maximum(rp - X, 1))
+    starts = [x.pulse for x in events] + [n]
+    settles, over_i, over_q = [], [], []
+    for a, b in zip(starts, starts[1:]):
+        seg = slice(a, b)
+        ok = np.abs(err[seg]) < thr[seg]
+        ok &= on[seg]
+        s = None
+        for j in range(len(ok)):
+            if ok[j:].all():
+                s = j
+                break
+        settles.append(s)
+        if s is not None and a > 0:
+            before_i, after_i = i[a - 1], i[a + s]
+            before_q, after_q = i[a - 1] * t[a - 1], i[a + s] * t[a + s]
+            lo_i, hi_i = min(before_i, after_i), max(before_i, after_i)
+            lo_q, hi_q = min(before_q, after_q), max(before_q, after_q)
+            ii, qq = i[a : a + s + 1], i[a : a + s + 1] * t[a : a + s + 1]
+            over_i.append(max(0.0, (ii.max() - hi_i) / hi_i, (lo_i - ii[ii > 0].min()) / lo_i if (ii > 0).any() else 0))
+            over_q.append(max(0.0, (qq.max() - hi_q) / hi_q))
+    rel_q = err[on] / target
+    rel_e = (i[on] ** 2 * t[on] - me) / me
+    floor = int(np.sum(((st.astype(int) & (sc.ST_I_MIN | sc.ST_T_MIN)) > 0) & on))
+    return {
+        "settle": settles, "rms_q": float(np.sqrt(np.nanmean(rel_q**2))), "peak_q": float(np.nanmax(np.abs(rel_q))),
+        "rms_e": float(np.sqrt(np.mean(rel_e**2))), "peak_e": float(np.max(np.abs(rel_e))),
+        "over_i": max(over_i, default=0.0), "over_q": max(over_q, default=0.0), "floor": floor,
+    }
+
+
+def step_events(i0, delta_kohm):
+    """A step of delta in Rp at the operating point (fixed I, T), made by scaling hydration."""
+    e = Electrode()
+    r0 = e.rp_kohm(i0, 1000)
+    target = r0 + delta_kohm
+    lo, hi = 0.01, 20.0
+    for _ in range(60):
+        h = math.sqrt(lo * hi)
+        e2 = Electrode()
+        e2.h = h
+        if e2.rp_kohm(i0, 1000) < target:
+            lo = h
+        else:
+            hi = h
+    return [Event(50, h=h), Event(300, h=1.0)], 550
+
+
+def fmt_settle(v):
+    return "-" if v is None else str(v)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--noise", type=float, default=0.0, help="relative Rp measurement noise (default 0)")
+    ap.add_argument("--plots", default="", help="folder for one PNG per scenario (default: none)")
+    a = ap.parse_args()
+    cases = []
+    for name in ("gel-step", "gel", "peel", "exercise", "off"):
+        ev, n = scenario_events(name)
+        cases.append((name, 1000, ev, n))
+    for i0 in (700, 1000, 2000):
+        for d in (-30, -20, -10, 10, 20, 50):
+            r0 = Electrode().rp_kohm(i0, 1000)
+            if r0 + d < 3:
+                continue
+            ev, n = step_events(i0, d)
+            cases.append((f"step {d:+d} kohm @ {i0} uA ({r0:.0f} kohm)", i0, ev, n))
+    print(f"| scenario | mode | pulses to settle (each disturbance) | mQ RMS / peak | mE RMS / peak | overshoot I / Q | pulses at a floor |")
+    print("|---|---|---|---|---|---|---|")
+    summary = {}
+    for name, i0, ev, n in cases:
+        runs = {}
+        for mode in MODE_NAMES:
+            rows, target, me = run(mode, ev, n, i0=i0, noise=a.noise)
+            m = metrics(rows, target, me, ev, n)
+            runs[mode] = (rows, target)
+            summary[(name, mode)] = m
+            print(f"| {name} | {MODE_NAMES[mode]} | {', '.join(fmt_settle(s) for s in m['settle'])} | "
+                  f"{m['rms_q']:.2%} / {m['peak_q']:.1%} | {m['rms_e']:.2%} / {m['peak_e']:.1%} | "
+                  f"{m['over_i']:.1%} / {m['over_q']:.1%} | {m['floor']} |")
+        if a.plots and not name.startswith("step") or (a.plots and name.startswith("step -30 kohm @ 1000")):
+            plot(name, runs, Path(a.plots))
+    # the issue's criteria for MODE_FAST against the paper's mode
+    print()
+    fails = []
+    for name, *_ in cases:
+        ak, fa = summary[(name, sc.MODE_AKHTAR)], summary[(name, sc.MODE_FAST)]
+        for j, (sa, sf) in enumerate(zip(ak["settle"], fa["settle"])):
+            if (sa is None or sa > 2) and (sf is None or sf > 2):
+                fails.append(f"{name} #{j}: fast {fmt_settle(sf)} (akhtar {fmt_settle(sa)})")
+        if fa["rms_q"] > ak["rms_q"] / 2:
+            fails.append(f"{name}: fast mQ RMS {fa['rms_q']:.2%} > half of akhtar's {ak['rms_q']:.2%}")
+        if fa["over_i"] > 0.05 or fa["over_q"] > 0.05:
+            fails.append(f"{name}: fast overshoot I {fa['over_i']:.1%} / Q {fa['over_q']:.1%}")
+    print("MODE_FAST criteria: " + ("all hold" if not fails else f"{len(fails)} not met:"))
+    for f in fails:
+        print("  - " + f)
+
+
+def plot(name, runs, out: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for mode, (rows, target) in runs.items():
+        k, i, t, rp, mq, st = rows.T
+        lw = 1.6 if mode in (sc.MODE_AKHTAR, sc.MODE_FAST) else 0.8
+        ax[0].plot(k, rp / 1e3, lw=lw, label=MODE_NAMES[mode])
+        ax[1].plot(k, i / 1e3, lw=lw)
+        ax[2].plot(k, (mq - target) / 1e6, lw=lw)
+    ax[0].set_ylabel("Rp (kΩ)")
+    ax[1].set_ylabel("I (mA)")
+    ax[2].set_ylabel("mQ − target (µC/kΩ)")
+    ax[2].set_ylim(-0.01, 0.01)
+    ax[2].set_xlabel("pulse")
+    ax[0].legend(fontsize=7, ncol=3)
+    ax[0].set_title(name)
+    for x in ax:
+        x.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / ("controllers-" + name.split(" ")[0] + ".png"), dpi=90)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
