@@ -410,10 +410,10 @@ class Controller:
         jump = q_new - base
         if step == 0 or (jump > 0) != (step > 0):
             return qf  # not the paper's direction: keep the paper's step
-        if step > 0:
-            if step < 0x8000000 and jump > step << 2:  # at most 4 paper steps
-                q_new = base + (step << 2)
-        elif -step < 0x8000000 and -jump > -(step << 2):
+        if step > 0:  # more charge: at most 2 paper steps (overshoot here is what is felt)
+            if step < 0x8000000 and jump > step << 1:
+                q_new = base + (step << 1)
+        elif -step < 0x8000000 and -jump > -(step << 2):  # less charge: at most 4 paper steps
             q_new = base + (step << 2)
         if q_new <= 0:
             return qf
