@@ -130,14 +130,16 @@ class Stimulator:
                 if self.locked:
                     self.locked = 0
                     _unlock()
-                self.errors += 1
+                if self.errors < 0x3FFFFFFF:
+                    self.errors += 1
                 self.last_error = e
                 self.stop_all(hp.STOP_INTERNAL)
             end = clk.ticks_us()
             self.loop_us = clk.ticks_diff(end, start)
             deadline = clk.ticks_add(deadline, self.period_us)
             if clk.ticks_diff(end, deadline) >= 0:  # missed the next deadline
-                self.overruns += 1
+                if self.overruns < 0x3FFFFFFF:
+                    self.overruns += 1
                 while clk.ticks_diff(end, deadline) >= 0:  # skip, keep the phase
                     deadline = clk.ticks_add(deadline, self.period_us)
             self.deadline = deadline
@@ -187,7 +189,7 @@ class Stimulator:
             self._check_keepalive(now)
             self.locked = 0
             _unlock()
-        self.frames += 1
+        self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     # -------------------------------------------------------------- safety
     def _latch(self, c, reason):
@@ -365,7 +367,7 @@ class Stimulator:
         b[hp.O_RESULT] = result
         b[hp.O_TAG] = r[hp.O_OUT_TAG]
         b[hp.O_DETAIL] = detail
-        self.acks += 1
+        self.acks = (self.acks + 1) & 0x3FFFFFFF
         return result
 
     def _info(self, r):
@@ -395,7 +397,7 @@ class Stimulator:
         while k < len(name) and k < hp.BOARD_LEN:
             b[hp.O_BOARD + k] = name[k]
             k += 1
-        self.acks += 1
+        self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
 
     def _cal_info(self, r, c):
@@ -418,7 +420,7 @@ class Stimulator:
         hp.put_i32(b, hp.O_CAL_Y, c.y)
         hp.put_i32(b, hp.O_CAL_RP0, c.ctl.rp0_ohm if c.ctl.calibrated else 0)
         b[hp.O_CAL_MODE] = c.ctl.mode
-        self.acks += 1
+        self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
 
     # ------------------------------------------------------------ commands
@@ -427,7 +429,7 @@ class Stimulator:
 
         A report that is malformed, unknown or out of range changes nothing.
         """
-        self.n_cmds += 1
+        self.n_cmds = (self.n_cmds + 1) & 0x3FFFFFFF
         if not hp.crc_ok(r):
             return self._ack(r, hp.RES_BAD_CRC, hp.O_CRC)
         cmd = r[hp.O_OUT_CMD]
@@ -564,13 +566,7 @@ class Stimulator:
         lim[3] = t_max
         lim[4] = q_max
         k = 0
-        while k < self.n:
-            ctl = self.chans[k].ctl
-            ctl.i_min_ua = i_min  # re-validated together above; same rules as Controller()
-            ctl.i_max_ua = i_max
-            ctl.t_min_us = t_min
-            ctl.t_max_us = t_max
-            ctl.q_max_pc = q_max
-            ctl.calibrated = False
+        while k < self.n:  # validated above against the same rules: cannot raise
+            self.chans[k].ctl.set_limits(i_min, i_max, t_min, t_max, q_max)
             k += 1
         return self._ack(r, hp.RES_OK, 0)

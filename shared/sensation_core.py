@@ -198,25 +198,12 @@ class Controller:
     """
 
     def __init__(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
-        _check("i_max_ua", i_max_ua, 1, I_LIMIT_UA)
-        _check("i_min_ua", i_min_ua, 1, i_max_ua)
-        _check("t_max_us", t_max_us, 1, T_LIMIT_US)
-        _check("t_min_us", t_min_us, 1, t_max_us)
-        _check("q_max_pc", q_max_pc, i_min_ua * t_min_us, Q_LIMIT_PC)
-        self.i_min_ua = i_min_ua
-        self.i_max_ua = i_max_ua
-        self.t_min_us = t_min_us
-        self.t_max_us = t_max_us
-        self.q_max_pc = q_max_pc
+        self.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
         self.mode = MODE_AKHTAR
-        self.i_ua = 0
-        self.t_us = 0
-        self.status = ST_UNCALIBRATED
         self.rp_ohm = 0  # last Rp given to update()
         self.me_ua2ms = 0  # mE in uA^2*ms (= uA^2*us / 1000), floored
         self.mq_target_fc_per_ohm = 0  # target mQ in fC/ohm (= 1e-3 pC/ohm)
         self.mq_last_fc_per_ohm = 0  # mQ of the pulse Rp was measured on
-        self.calibrated = False
         self.i0_ua = 0
         self.t0_us = 0
         self.rp0_ohm = 0
@@ -234,8 +221,25 @@ class Controller:
         self._fq = 0  # MODE_FAST: charge (pC) and Rp of the pulse before the last one
         self._frp = 0
         self._fok = 0  # 1: that pulse was a clean step (no fault, no bound)
-        self._fjump = 0  # 1: the last step was a secant jump (the next one is not)
         self.fast_jumps = 0  # telemetry/diagnostics: secant jumps taken
+
+    def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
+        """Current, duration and charge limits; ValueError (nothing changed) if out
+        of range. The calibration is dropped: calibrate() again before update()."""
+        _check("i_max_ua", i_max_ua, 1, I_LIMIT_UA)
+        _check("i_min_ua", i_min_ua, 1, i_max_ua)
+        _check("t_max_us", t_max_us, 1, T_LIMIT_US)
+        _check("t_min_us", t_min_us, 1, t_max_us)
+        _check("q_max_pc", q_max_pc, i_min_ua * t_min_us, Q_LIMIT_PC)
+        self.i_min_ua = i_min_ua
+        self.i_max_ua = i_max_ua
+        self.t_min_us = t_min_us
+        self.t_max_us = t_max_us
+        self.q_max_pc = q_max_pc
+        self.calibrated = False
+        self.i_ua = 0
+        self.t_us = 0
+        self.status = ST_UNCALIBRATED
 
     def calibrate(self, i0_ua, t0_us, rp0_ohm, x_star_ohm, y_star_pc):
         """Set mE and mQ from a first pulse (i0, t0) that felt right, Rp0 on it.
@@ -272,7 +276,6 @@ class Controller:
         self.mq_target_fc_per_ohm = _muldiv(self._a, 1000, self._d0, 0, _MQ_CAP)
         self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
         self._fok = 0
-        self._fjump = 0
         self.rp_ohm = rp0_ohm
         self.i_ua = i0_ua
         self.t_us = t0_us
@@ -378,7 +381,6 @@ class Controller:
         (docs/controller.md), else the paper's step L(Rp_k) (= qf) is returned.
         """
         if not self._fok or q_k <= 0:
-            self._fjump = 0
             return qf
         dq = q_k - self._fq
         adq = dq if dq >= 0 else -dq
@@ -417,8 +419,8 @@ class Controller:
             q_new = base + (step << 2)
         if q_new <= 0:
             return qf
-        self._fjump = 1
-        self.fast_jumps += 1
+        if self.fast_jumps < _SAT30:  # a counter must never become a long int
+            self.fast_jumps += 1
         return q_new
 
     def _from_q(self, qf):
