@@ -256,10 +256,11 @@ def cmd_record(a) -> int:
 
 
 def cmd_monitor(a) -> int:
-    from .monitor import MonitorState
+    from .monitor import LivePlot, MonitorState
 
     state = MonitorState()
     tty = sys.stdout.isatty()
+    live = LivePlot() if a.plot else None
     with open_transport(a.device) as t:
         d = Device(t)
         t_end = time.monotonic() + a.seconds if a.seconds else None
@@ -269,9 +270,13 @@ def cmd_monitor(a) -> int:
                 rep = d.read(0.05)
                 if isinstance(rep, Telemetry):
                     state.add(rep)
+                    if live:
+                        live.add(rep)
                 now = time.monotonic()
                 if now >= next_draw:
                     next_draw = now + 0.1  # 10 screens a second
+                    if live and not live.draw():
+                        break  # the window was closed
                     screen = state.render(a.device, d.lost)
                     if tty:
                         sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
@@ -469,6 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = add("monitor", cmd_monitor, "live view of a device's telemetry (10 screens a second)",
             "  steadytouch monitor\n  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--plot", action="store_true", help="also a live plot window (matplotlib; needs a display)")
 
     s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")

@@ -141,6 +141,13 @@ def test_monitor_shows_every_channel(tmp_path):
     assert "steadytouch monitor" in p.stdout and "\n 0 stimulating" in p.stdout and "\n 1 stimulating" in p.stdout
 
 
+def test_monitor_plot_without_a_display_is_one_line():
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    p = subprocess.run([EXE, "monitor", "--plot", "--seconds", "1", "--device", "sim://steady"], capture_output=True,
+                       text=True, timeout=60, cwd=ROOT, env=env)
+    assert p.returncode == 2 and "--plot needs a display" in p.stderr and "Traceback" not in p.stderr
+
+
 def test_flash_dry_run_lists_files_and_commands(tmp_path):
     p = run("flash", "--dry-run", "--build-dir", str(tmp_path / "dev"))
     assert p.returncode == 0, p.stderr
