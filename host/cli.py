@@ -17,7 +17,7 @@ from . import __version__
 from .device import Device, DeviceError
 from .protocol import STOP_WORDS, CalInfo, Info, Telemetry
 from .record import Recorder, RecordingError, read_recording, write_recording
-from .simrun import Calib, SimError, run_firmware, scenario_keys
+from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
 USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError, RuntimeError)
@@ -62,8 +62,7 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
 def sim_meta(a, cal: Calib, m: str) -> dict:
     return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}", "scenario": a.scenario,
             "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
-            "y_star_pc": cal.y_star_pc, "i_min_ua": 500, "i_max_ua": 10000, "t_min_us": 100, "t_max_us": 8000,
-            "q_max_pc": 10000000, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            "y_star_pc": cal.y_star_pc, **default_limits(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 
 def cmd_sim(a) -> int:

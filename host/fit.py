@@ -276,10 +276,9 @@ def table(res: FitResult) -> list[str]:
 
 
 def figure(sets: list[DataSet], res: FitResult, out: Path | str) -> Path:
-    import matplotlib
+    from .plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.6))
     x, y = res.x_star_ohm, res.y_star_pc

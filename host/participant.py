@@ -17,25 +17,19 @@ point and the true (x*, y*), plus measurement noise (Vp averaged over 10 pulses:
 from __future__ import annotations
 
 import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .simrun import FIRMWARE
+from .simrun import firmware_module
 
 T_STEPS_US = np.arange(200, 701, 50)  # the paper's Exp. 1: 200..700 us in 50 us steps (11 points)
 CONDITIONS = [(m, site, area) for m in ("weak", "strong") for site in ("forearm", "upperarm") for area in (5.6, 3.0)]
 
 
 def _electrode_cls():
-    sys.path.insert(0, str(FIRMWARE))
-    try:
-        from sim_electrode import Electrode
-    finally:
-        sys.path.remove(str(FIRMWARE))
-    return Electrode
+    return firmware_module("sim_electrode").Electrode
 
 
 @dataclass

@@ -11,6 +11,16 @@ import numpy as np
 from .record import meta_int
 
 
+def pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _series(rows, channel=0):
     r = [x for x in rows if x["channel"] == channel and x["i_ua"] > 0]
     f = {k: np.array([x[k] for x in r], dtype=float) for k in r[0]} if r else {}
@@ -19,10 +29,7 @@ def _series(rows, channel=0):
 
 def fig5(recordings: list[tuple[str, dict, list[dict]]], out: Path | str, channel: int = 0) -> Path:
     """recordings: (title, meta, rows) per column, e.g. controller and open loop."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     n = len(recordings)
     fig, axes = plt.subplots(5, n, figsize=(5.5 * n, 10), sharex="col", squeeze=False)
@@ -61,10 +68,7 @@ def fig5(recordings: list[tuple[str, dict, list[dict]]], out: Path | str, channe
 
 def planes(meta: dict, rows: list[dict], out: Path | str, channel: int = 0) -> Path:
     """Ep-Rp and Q-Rp planes of the delivered pulses with the calibrated lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     s = _series(rows, channel)
     rp = s["rp_ohm"] / 1e3  # kΩ

@@ -30,13 +30,28 @@ def micropython_exe() -> str:
     return found
 
 
-def scenario_keys(name: str):
-    """The scenario's keyframes (the firmware's own module, run by CPython)."""
+def firmware_module(name: str):
+    """One of the firmware's pure-Python modules, imported by CPython."""
+    import importlib
+
     sys.path.insert(0, str(FIRMWARE))
     try:
-        import sim_electrode
+        return importlib.import_module(name)
     finally:
         sys.path.remove(str(FIRMWARE))
+
+
+def default_limits() -> dict:
+    """The soft limits the (simulated) board starts with: board_config's."""
+    cfg = firmware_module("board_config")
+    return {"i_min_ua": min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA), "i_max_ua": cfg.HARD_I_MAX_UA,
+            "t_min_us": min(cfg.T_MIN_US, cfg.HARD_T_MAX_US), "t_max_us": cfg.HARD_T_MAX_US,
+            "q_max_pc": cfg.HARD_Q_MAX_PC}
+
+
+def scenario_keys(name: str):
+    """The scenario's keyframes (the firmware's own module, run by CPython)."""
+    sim_electrode = firmware_module("sim_electrode")
     try:
         sc = sim_electrode.scenario(name)
     except (ValueError, OSError) as e:
