@@ -393,20 +393,23 @@ class Controller:
         g = _frac12(x, adq)  # |G| in Q.12
         if (dr < 0) != (dq < 0):
             g = -g
-        if g > 3276 or g < -6144:  # G outside [-1.5, 0.8]: no stable fixed point nearby
+        if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
             return qf
         lq = qf >> 4  # L(Rp_k) in pC
         gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
         n = lq - gq
         if n <= 0:
             return qf
-        den = 4096 - g  # (1 - G) in Q.12, in [819, 10240]
+        den = 4096 - g  # (1 - G) in Q.12, in [205, 10240]
         h = n // den
-        q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < 2**29
-        if q_new > self.q_max_pc:
-            q_new = self._qcap + 1  # above q_max: _from_q clamps and flags it
+        if h > self.q_max_pc >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
+            q_new = self._qcap + 1  # _from_q clamps and flags it
         else:
-            q_new = q_new << 4
+            q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < q_max + 2**12
+            if q_new > self.q_max_pc:
+                q_new = self._qcap + 1
+            else:
+                q_new = q_new << 4
         base = q_k << 4
         step = qf - base  # the paper's step, 1/16 pC
         jump = q_new - base

@@ -77,3 +77,28 @@ def test_intermediates_below_2_30_at_corners():
                 n += 1
     assert n > 100
     assert TRACK.max_abs < 1 << 30
+
+
+@settings(max_examples=3000)
+@given(st.data())
+def test_fast_step_intermediates_below_2_30(data):
+    """MODE_FAST's secant step over its whole input space (any remembered pulse, any
+    new one), not only where whole scenarios happen to lead."""
+    import sensation_core as sc
+    from steadytouch.reference import Calibration, Limits
+
+    from strategies import calibration, limits
+
+    lim = data.draw(limits())
+    cal = data.draw(calibration(lim))
+    c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
+    c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    c.set_mode(CORE.MODE_FAST)
+    q = st.integers(1, lim.q_max_pc)
+    rp = st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)
+    c._fok = 1
+    c._fq = data.draw(st.one_of(q, st.just(0)))
+    c._frp = data.draw(rp)
+    qf = data.draw(st.integers(1, c._qcap))
+    q_new = c._fast(qf, data.draw(q), data.draw(rp))
+    assert 0 < q_new <= c._qcap + 1
