@@ -66,16 +66,18 @@ class Session:
         return int(max(i_lo, min(i_hi, i_ua, q_max // t_us)))
 
     def present(self, i_ua, t_us) -> Presented:
-        """A short pulse train at (I, T), open loop; Rp = median over its pulses."""
+        """A pulse train at (I, T), open loop, for present_s (and at least 3 pulses);
+        Rp = median over its last 10 pulses."""
         i_ua = self._clamp(i_ua, t_us)
         d = self.d
         d.disarm(self.ch)
         d.mode(sc.MODE_OPEN_LOOP)
         d.calibrate(i_ua, t_us, 0, 0, self.ch)
         d.arm(self.ch)
-        rps, t_end = [], time.monotonic() + self.present_s
+        t0 = time.monotonic()
+        rps, t_end, t_give_up = [], t0 + self.present_s, t0 + max(3.0, 3 * self.present_s)
         try:
-            while time.monotonic() < t_end:
+            while (time.monotonic() < t_end or len(rps) < 3) and time.monotonic() < t_give_up:
                 rep = d.read(0.1)
                 if isinstance(rep, Telemetry) and rep.channel == self.ch and rep.i_ua == i_ua and rep.t_us == t_us:
                     rps.append(rep.rp_ohm)
