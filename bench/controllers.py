@@ -117,7 +117,7 @@ def metrics(rows, target, me, events, n):
             before_i, after_i = i[a - 1], i[a + s]
             before_q, after_q = i[a - 1] * t[a - 1], i[a + s] * t[a + s]
             lo_i, hi_i = min(before_i, after_i), max(before_i, after_i)
-            lo_q, hi_q = min(before_q, after_q), max(before_q, after_q)
+            hi_q = max(before_q, after_q)  # charge: only above the range is a shock risk
             ii, qq = i[a : a + s + 1], i[a : a + s + 1] * t[a : a + s + 1]
             over_i.append(max(0.0, (ii.max() - hi_i) / hi_i, (lo_i - ii[ii > 0].min()) / lo_i if (ii > 0).any() else 0))
             over_q.append(max(0.0, (qq.max() - hi_q) / hi_q))
@@ -168,7 +168,7 @@ def main():
                 continue
             ev, n = step_events(i0, d)
             cases.append((f"step {d:+d} kohm @ {i0} uA ({r0:.0f} kohm)", i0, ev, n))
-    print(f"| scenario | mode | pulses to settle (each disturbance) | mQ RMS / peak | mE RMS / peak | overshoot I / Q | pulses at a floor |")
+    print("| scenario | mode | pulses to settle (each disturbance) | mQ RMS / peak | mE RMS / peak | overshoot I / Q | pulses at a floor |")
     print("|---|---|---|---|---|---|---|")
     summary = {}
     for name, i0, ev, n in cases:

@@ -276,7 +276,7 @@ def table(res: FitResult) -> list[str]:
 
 
 def figure(sets: list[DataSet], res: FitResult, out: Path | str) -> Path:
-    from .plot import pyplot
+    from .plot import pyplot, save
 
     plt = pyplot()
 
@@ -305,10 +305,4 @@ def figure(sets: list[DataSet], res: FitResult, out: Path | str) -> Path:
     ax[2].axhline(R2_THRESHOLD, color="r", lw=0.8, ls="--")
     ax[2].set_xticks(pos, conds, rotation=35, ha="right", fontsize=7)
     ax[2].set(ylabel="r² (left Ep, right Q)", title="r² per condition")
-    for a in ax:
-        a.grid(alpha=0.3)
-    fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save(fig, out, ax)

@@ -21,6 +21,20 @@ def pyplot():
     return plt
 
 
+def save(fig, out: Path | str, axes=()) -> Path:
+    """Grid the axes, lay out, write the PNG and free the figure."""
+    for a in axes:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=110)
+    fig.clf()
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return out
+
+
 def _series(rows, channel=0):
     r = [x for x in rows if x["channel"] == channel and x["i_ua"] > 0]
     f = {k: np.array([x[k] for x in r], dtype=float) for k in r[0]} if r else {}
@@ -59,11 +73,7 @@ def fig5(recordings: list[tuple[str, dict, list[dict]]], out: Path | str, channe
     for k, lab in enumerate(ylabels):
         axes[k, 0].set_ylabel(lab)
     fig.suptitle(f"steadytouch: {recordings[0][1].get('scenario', '')} (channel {channel})")
-    fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save(fig, out)
 
 
 def planes(meta: dict, rows: list[dict], out: Path | str, channel: int = 0) -> Path:
@@ -94,10 +104,4 @@ def planes(meta: dict, rows: list[dict], out: Path | str, channel: int = 0) -> P
     b.set_xlabel("Rp (kΩ)")
     b.set_ylabel("Q (µC)")
     b.legend(fontsize=8)
-    for ax in (a, b):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save(fig, out, (a, b))

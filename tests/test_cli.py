@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from steadytouch.cli import build_parser, main
-from steadytouch.record import RecordingError, read_recording
+from steadytouch.cli import build_parser
+from steadytouch.record import read_recording
 
 from conftest import ROOT
 

@@ -3,8 +3,6 @@
 import importlib.util
 import sys
 
-import pytest
-
 import sensation_core as sc
 
 from conftest import ROOT

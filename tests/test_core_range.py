@@ -85,7 +85,6 @@ def test_fast_step_intermediates_below_2_30(data):
     """MODE_FAST's secant step over its whole input space (any remembered pulse, any
     new one), not only where whole scenarios happen to lead."""
     import sensation_core as sc
-    from steadytouch.reference import Calibration, Limits
 
     from strategies import calibration, limits
 

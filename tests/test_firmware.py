@@ -7,7 +7,7 @@ import pytest
 
 import hid_protocol as hp
 import sensation_core as sc
-from steadytouch.protocol import Ack, Info, Telemetry
+from steadytouch.protocol import Telemetry
 
 from fw_harness import run_fw
 

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 
-import hid_protocol as hp
 from steadytouch.device import Device
 from steadytouch.session import Session, SimResponder, Stopped
 from steadytouch.transport import open_transport
