@@ -76,7 +76,13 @@ def cmd_sim(a) -> int:
     for m in modes:
         t0 = time.perf_counter()
         say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
-        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed)
+        def show(t_s, m=m):
+            if sys.stderr.isatty():
+                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated", end="", file=sys.stderr, flush=True)
+
+        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show)
+        if sys.stderr.isatty():
+            print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
         if bad:
             raise SimError(f"the device refused: {bad[0].words()}")

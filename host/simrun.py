@@ -68,8 +68,11 @@ class Calib:
 
 
 def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: int = 1, frames: int | None = None,
-                 timeout: float = 600):
-    """All IN reports of one run (virtual clock), decoded."""
+                 timeout: float = 3600, progress=None):
+    """All IN reports of one run (virtual clock), decoded. progress(t_s) is called as
+    simulated time advances (about every 0.2 s of wall time)."""
+    import time
+
     if not FIRMWARE.is_dir():
         raise SimError(f"firmware folder not found at {FIRMWARE}: run steadytouch from a checkout of the project")
     args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--mode", mode,
@@ -78,8 +81,28 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
     if frames:
         args += ["--frames", str(frames)]
     env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
-    p = subprocess.run(args, capture_output=True, env=env, timeout=timeout)
-    if p.returncode != 0:
-        msg = p.stderr.decode(errors="replace").strip().splitlines()
-        raise SimError(msg[0] if msg else f"the simulated device exited with code {p.returncode}")
-    return [decode(r) for r in split_stdio_stream(p.stdout)]
+    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    chunks, t_start, last, tail = [], time.monotonic(), 0.0, b""
+    try:
+        while True:
+            chunk = p.stdout.read1(1 << 16)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            tail = (tail + chunk)[-4 * 66:]  # enough to hold one whole framed report
+            now = time.monotonic()
+            if progress and now - last > 0.2:
+                last = now
+                reps = split_stdio_stream(tail)
+                if reps:
+                    progress(int.from_bytes(reps[-1][8:12], "little") / 1e6)  # the report's time_us
+            if now - t_start > timeout:
+                raise SimError(f"the simulated run took longer than {timeout:.0f} s")
+        err = p.stderr.read().decode(errors="replace").strip().splitlines()
+        rc = p.wait()
+    finally:
+        if p.poll() is None:
+            p.kill()
+    if rc != 0:
+        raise SimError(err[0] if err else f"the simulated device exited with code {rc}")
+    return [decode(r) for r in split_stdio_stream(b"".join(chunks))]

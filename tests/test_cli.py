@@ -164,3 +164,12 @@ def test_sim_writes_csv_png_and_summary(tmp_path):
     assert "mQ err akhtar" in p.stdout and "(bound)" in p.stdout
     p2 = run("plot", str(tmp_path / "peel-akhtar.csv"), "--planes", "--out", str(tmp_path / "x.png"))
     assert p2.returncode == 0 and (tmp_path / "x-planes.png").exists()
+
+
+def test_sim_reports_progress_in_simulated_time():
+    from steadytouch.simrun import Calib, run_firmware
+
+    seen = []
+    reps = run_firmware("exercise", "akhtar", Calib(), frames=6000, progress=seen.append)
+    assert len(reps) == 3 + 6000
+    assert seen and seen == sorted(seen) and 0 <= seen[-1] <= 120.0
