@@ -128,8 +128,7 @@ class Stimulator:
                 self.frame(deadline)
             except Exception as e:  # a firmware error: stop every channel, keep reporting
                 if self.locked:
-                    self.locked = 0
-                    _unlock()
+                    self._leave()
                 if self.errors < 0x3FFFFFFF:
                     self.errors += 1
                 self.last_error = e
@@ -154,42 +153,40 @@ class Stimulator:
         k = 0
         while k < self.n:
             c = self.chans[k]
-            _lock()
-            self.locked = 1
+            self._enter()
             ok = self._pre_pulse(c)
-            self.locked = 0
-            _unlock()
+            self._leave()
             n = board.fire(k, c.t) if ok else 0
-            _lock()
-            self.locked = 1
-            self._post_pulse(c, self._peak_mv(board.adc[k], n), now)
+            self._enter()
+            self._post_pulse(c, self._peak_mv(board.adc[k], n))
             self._encode_telemetry(c)
-            self.locked = 0
-            _unlock()
-            if c.armed:
-                board.set_amplitude(k, c.i)  # settles during the rest of the frame
-            else:
-                board.stop(k)
+            self._leave()
+            self._output(k)  # the amplitude settles during the rest of the frame
             board.send(self.tx)
             k += 1
         m = 0
         while m < _MAX_CMDS_PER_FRAME and board.recv(self.rx):
-            _lock()
-            self.locked = 1
+            self._enter()
             self.handle(self.rx, now)
-            self.locked = 0
-            _unlock()
+            self._leave()
             board.send(self.tx)
             m += 1
         if m:  # outputs follow the commands at once
             self.sync_outputs()
         if self.keepalive_ms:
-            _lock()
-            self.locked = 1
+            self._enter()
             self._check_keepalive(now)
-            self.locked = 0
-            _unlock()
+            self._leave()
         self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
+
+    def _enter(self):
+        """Start a firmware section: nothing in it may allocate (raises MemoryError)."""
+        _lock()
+        self.locked = 1
+
+    def _leave(self):
+        self.locked = 0
+        _unlock()
 
     # -------------------------------------------------------------- safety
     def _latch(self, c, reason):
@@ -250,7 +247,7 @@ class Stimulator:
             k += 1
         return best * self.uv_per_count // 1000
 
-    def _post_pulse(self, c, vp, now):
+    def _post_pulse(self, c, vp):
         c.vp = vp
         if c.di == 0:
             c.rp = 0
@@ -302,15 +299,18 @@ class Stimulator:
                     self._latch(c, hp.STOP_KEEPALIVE)
                 k += 1
 
+    def _output(self, k):
+        """Channel k's outputs follow its state: amplitude for the next pulse, or stopped."""
+        c = self.chans[k]
+        if c.armed:
+            self.board.set_amplitude(k, c.i)
+        else:
+            self.board.stop(k)
+
     def sync_outputs(self):
-        """Amplitude of every armed channel set for its next pulse; the others stopped."""
         k = 0
         while k < self.n:
-            c = self.chans[k]
-            if c.armed:
-                self.board.set_amplitude(k, c.i)
-            else:
-                self.board.stop(k)
+            self._output(k)
             k += 1
 
     def stop_all(self, reason):
@@ -433,8 +433,8 @@ class Stimulator:
         if not hp.crc_ok(r):
             return self._ack(r, hp.RES_BAD_CRC, hp.O_CRC)
         cmd = r[hp.O_OUT_CMD]
-        if r[3]:
-            return self._ack(r, hp.RES_BAD_FORMAT, 3)
+        if r[hp.O_OUT_RESERVED]:
+            return self._ack(r, hp.RES_BAD_FORMAT, hp.O_OUT_RESERVED)
         ch = r[hp.O_OUT_CH]
         if ch != hp.CH_ALL and ch >= self.n:
             return self._ack(r, hp.RES_BAD_CHANNEL, hp.O_OUT_CH)

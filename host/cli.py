@@ -20,6 +20,7 @@ from .record import Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
+# what a user can act on (FlashError, SimError and the session's errors are RuntimeErrors)
 USER_ERRORS = (SimError, TransportError, DeviceError, RecordingError, ValueError, OSError, RuntimeError)
 MODES = {"akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST, "open": sc.MODE_OPEN_LOOP,
          "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY, "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR}
@@ -583,11 +584,6 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("steadytouch: interrupted", file=sys.stderr)
         return 130
-    except Exception as e:  # FlashError and anything else a user can act on
-        if type(e).__name__ == "FlashError":
-            print(f"steadytouch: {e}", file=sys.stderr)
-            return 2
-        raise
 
 
 if __name__ == "__main__":

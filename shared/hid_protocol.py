@@ -131,6 +131,7 @@ O_CAL_MODE = const(32)
 O_OUT_CMD = const(0)
 O_OUT_TAG = const(1)
 O_OUT_CH = const(2)
+O_OUT_RESERVED = const(3)  # must be 0
 O_ARG = const(4)
 O_CRC = const(62)
 CRC_LEN = const(62)

@@ -329,7 +329,7 @@ class Controller:
         mode = self.mode
         q_k = self.i_ua * self.t_us  # the pulse this Rp was measured on
         if mode < MODE_AKHTAR:
-            return self._fixed_current(mode, rp_ohm, d)
+            return self._fixed_current(mode, rp_ohm)
         # Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max
         qf = self._y16 + _muldiv(self._a, d, self._d0, 4, self._pcap)
         if qf <= 0:
@@ -344,7 +344,7 @@ class Controller:
         self._fok = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
-    def _fixed_current(self, mode, rp_ohm, d):
+    def _fixed_current(self, mode, rp_ohm):
         """The baseline laws: I = I0; T from the mode's law, then the bounds."""
         t0 = self.t0_us
         t = t0  # MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE (I0 * T0 held)
