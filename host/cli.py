@@ -109,10 +109,6 @@ def cmd_sim(a) -> int:
 
 
 # ------------------------------------------------------------ devices
-def open_device(a) -> Device:
-    return Device(open_transport(a.device))
-
-
 def cmd_info(a) -> int:
     with open_transport(a.device) as t:
         d = Device(t)

@@ -199,10 +199,6 @@ def split_stdio_stream(data: bytes):
     return out
 
 
-def frame_for_stdio(report: bytes) -> bytes:
-    return b"\xa5\x5a" + bytes(report)
-
-
 class Commands:
     """OUT report builders with a running tag (a thin layer over hid_protocol's)."""
 

@@ -152,10 +152,6 @@ def crc16(buf, n):
     return crc
 
 
-def put_u8(b, o, v):
-    b[o] = v & 0xFF
-
-
 def put_u16(b, o, v):
     b[o] = v & 0xFF
     b[o + 1] = (v >> 8) & 0xFF
