@@ -527,7 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument(k, type=int, required=True)
 
     s = add("mode", _simple("mode", lambda a: MODES[a.mode], lambda a: a.rate_hz),
-            "choose the controller (akhtar: the paper; fast: the secant variant; open, charge, energy, pwlinear: baselines) and the frame rate",
+            "choose the controller (akhtar: the paper; fast: the Newton variant; open, charge, energy, pwlinear: baselines) and the frame rate",
             "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
     s.add_argument("mode", choices=list(MODES))
     s.add_argument("--rate-hz", type=int, default=0, help="10-100 (default: unchanged)")

@@ -49,7 +49,7 @@ MODE_CONSTANT_CHARGE = const(1)  # Kantor: I*T held at I0*T0 (split as at calibr
 MODE_CONSTANT_ENERGY = const(2)  # Tachi: Vp*I*T held, I fixed: T = T0 * Rp0 / Rp
 MODE_PULSE_WIDTH_LINEAR = const(3)  # Kajimoto-style: T = a + b*Rp, I fixed
 MODE_AKHTAR = const(4)  # the paper's Eqs. 1-4 (default)
-MODE_FAST = const(5)  # the paper's target, reached by a secant step (docs/controller.md)
+MODE_FAST = const(5)  # the paper's target, reached by a Newton step (docs/controller.md)
 MODES = (MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE, MODE_CONSTANT_ENERGY, MODE_PULSE_WIDTH_LINEAR, MODE_AKHTAR, MODE_FAST)
 
 _M11 = const(0x7FF)
@@ -57,6 +57,9 @@ _M15 = const(0x7FFF)
 _SAT15 = const(0x8000)  # "at least 2**15": larger than any bound
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
+# MODE_FAST's prior: the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE
+# curve, in Q.12 (0.45: the current exponent beta >= 0.5 less the series resistance)
+FAST_ELASTICITY_Q12 = const(1843)
 
 
 def _muldiv(a, b, c, fbits, cap):
@@ -336,7 +339,9 @@ class Controller:
             self._fok = 0
             return self.stop(ST_Q_NONPOS)
         if mode == MODE_FAST:
-            qf = self._fast(qf, q_k, rp_ohm)
+            dq = qf - (q_k << 4)  # 1/16 pC; on the line within 1/2 uA and 1/2 us: the paper's step
+            if (dq if dq >= 0 else -dq) >= (self.i_ua + self.t_us) << 3:
+                qf = self._fast(qf, q_k, rp_ohm)
         st = self._from_q(qf)
         # MODE_FAST remembers this pulse for the next secant
         self._fq = q_k
@@ -373,28 +378,39 @@ class Controller:
         return st
 
     def _fast(self, qf, q_k, rp_ohm):
-        """MODE_FAST: a secant (Newton) step towards the self-consistent charge.
+        """MODE_FAST: a Newton step towards the self-consistent charge.
 
-        With the skin's response to charge along the mE curve linearised from the
-        last two pulses, slope s = dRp/dQ, the fixed point of Q = L(Rp(Q)) is
-        Q* = (L(Rp_k) - G Q_k) / (1 - G), G = mQ s. Taken only when trustworthy
-        (docs/controller.md), else the paper's step L(Rp_k) (= qf) is returned.
+        With the skin's response to charge along the mE curve linearised, slope
+        s = dRp/dQ, the fixed point of Q = L(Rp(Q)) is Q* = (L(Rp_k) - G Q_k) / (1 - G),
+        G = mQ s. G comes from the last two pulses (a secant) when they are a
+        trustworthy pair, else from the skin's least elasticity (FAST_ELASTICITY_Q12,
+        a lower bound on G: the step then never passes the fixed point of a skin
+        that follows the model). docs/controller.md gives the rules; the paper's
+        step L(Rp_k) (= qf) is returned whenever neither applies.
         """
-        if not self._fok or q_k <= 0:
+        if q_k <= 0:
             return qf
-        dq = q_k - self._fq
-        adq = dq if dq >= 0 else -dq
-        if adq < 64 or adq < (q_k >> 5):  # too little excitation: the secant is noise
-            return qf
-        dr = rp_ohm - self._frp
-        x = _muldiv(self._a, dr if dr >= 0 else -dr, self._d0, 0, _MQ_CAP)  # mQ |dRp| (pC)
-        if x >= adq << 1:  # |G| >= 2: the linear model is not trustworthy
-            return qf
-        g = _frac12(x, adq)  # |G| in Q.12
-        if (dr < 0) != (dq < 0):
-            g = -g
-        if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
-            return qf
+        g = _SAT15  # "no estimate"
+        if self._fok:
+            dq = q_k - self._fq
+            adq = dq if dq >= 0 else -dq
+            if adq >= 64 and adq >= (q_k >> 5):  # enough excitation for a secant
+                dr = rp_ohm - self._frp
+                x = _muldiv(self._a, dr if dr >= 0 else -dr, self._d0, 0, _MQ_CAP)  # mQ |dRp| (pC)
+                if x >= adq << 1:  # |G| >= 2: the linear model is not trustworthy
+                    return qf
+                g = _frac12(x, adq)  # |G| in Q.12
+                if (dr < 0) != (dq < 0):
+                    g = -g
+                if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
+                    return qf
+        if g == _SAT15:  # the prior: G >= elasticity * mQ Rp / Q
+            x = _muldiv(self._a, rp_ohm, self._d0, 0, _MQ_CAP)  # mQ Rp (pC)
+            if x >= q_k << 1:
+                return qf
+            g = (_frac12(x, q_k) * FAST_ELASTICITY_Q12) >> 12
+            if g > 3891:
+                return qf
         lq = qf >> 4  # L(Rp_k) in pC
         gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
         n = lq - gq
@@ -468,6 +484,12 @@ class Controller:
             if t < t_min:
                 t = t_min
                 i = q_max // t_min
+        elif st == ST_OK and self.mode == MODE_FAST:
+            # the integer pulse nearest the charge: I = round(Q / T), so I*T is
+            # within T/2 pC of Q (mE then within 1/(2T) of its value)
+            i2 = (qf + (t << 3)) // (t << 4)
+            if self.i_min_ua <= i2 <= self.i_max_ua and i2 * t <= q_max:
+                i = i2
         self.i_ua = i
         self.t_us = t
         self.status = st

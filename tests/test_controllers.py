@@ -39,3 +39,50 @@ def test_baselines_do_not_hold_mq():
     for mode in (sc.MODE_OPEN_LOOP, sc.MODE_CONSTANT_CHARGE, sc.MODE_CONSTANT_ENERGY, sc.MODE_PULSE_WIDTH_LINEAR):
         m = settle(mode, "gel-step")
         assert m["settle"][0] is None and m["rms_q"] > 0.5
+
+
+def test_the_laws_own_point_after_a_75_percent_peel_is_beyond_t_max():
+    """Why the firmware's peel test holds mQ after 25/50 % and re-applying but not 75 %:
+    the self-consistent pulse of the paper's law on that skin needs T > 8 ms (the
+    board's hard limit). Solved on the simulated skin itself, not on the controller."""
+    c = sc.Controller(*bench.LIMITS)
+    e = bench.Electrode()
+    c.calibrate(1000, 1000, round(e.rp_kohm(1000, 1000) * 1000), bench.X, bench.Y)
+    me = 1000 * 1000 * 1000
+    t_needed = {}
+    for contact in (1.0, 0.75, 0.5, 0.25):
+        e.contact = contact
+        q = bench.oracle_charge(c, e, 1_000_000)
+        t_needed[contact] = q * q / me
+    assert abs(t_needed[1.0] - 1000) < 5
+    assert t_needed[0.75] < t_needed[0.5] < 8000 < t_needed[0.25], t_needed
+
+
+def test_fast_mode_never_overshoots_on_any_benchmark_case():
+    """<= 5 % beyond the range before/after (the issue's shock-risk bound), on every case,
+    and never a worse mQ RMS than the paper's mode by more than 0.1 % of mQ."""
+    for name in ("gel-step", "gel", "peel"):
+        ev, n = bench.scenario_events(name)
+        a = bench.metrics(*bench.run(sc.MODE_AKHTAR, ev, n), ev, n)
+        f = bench.metrics(*bench.run(sc.MODE_FAST, ev, n), ev, n)
+        assert f["over_i"] <= 0.05 and f["over_q"] <= 0.05, name
+        assert f["rms_q"] <= a["rms_q"] + 1e-3, name
+    for i0 in (700, 1000, 2000):
+        for d in (-30, -20, -10, 10, 20, 50):
+            if bench.Electrode().rp_kohm(i0, 1000) + d < 3:
+                continue
+            ev, n = bench.step_events(i0, d)
+            ra, rf = bench.run(sc.MODE_AKHTAR, ev, n, i0=i0), bench.run(sc.MODE_FAST, ev, n, i0=i0)
+            a, f = bench.metrics(*ra, ev, n), bench.metrics(*rf, ev, n)
+            assert f["over_i"] <= 0.05 and f["over_q"] <= 0.05, (i0, d)
+            if ra[0][-1, 1] > 0 and rf[0][-1, 1] > 0:  # (+50 kohm @ 1 mA: Rp passes 200 kohm, both stop)
+                assert f["rms_q"] <= a["rms_q"] + 1e-3, (i0, d, f["rms_q"], a["rms_q"])
+
+
+def test_fast_mode_halves_the_papers_error_under_slow_sweating():
+    """Exercise (5 min of sweating, 10 min rest): the paper's iteration lags the drift and
+    rounds I and T separately; FAST's Newton step and charge-exact pulse halve its mQ RMS."""
+    ev, n = bench.scenario_events("exercise")
+    a = bench.metrics(*bench.run(sc.MODE_AKHTAR, ev, n), ev, n)
+    f = bench.metrics(*bench.run(sc.MODE_FAST, ev, n), ev, n)
+    assert f["rms_q"] <= a["rms_q"] / 2, (f["rms_q"], a["rms_q"])

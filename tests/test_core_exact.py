@@ -301,16 +301,22 @@ def test_baseline_laws(data):
         assert abs(c.t_us - t_lin) <= 1
 
 
-def test_fast_mode_starts_with_the_papers_step_and_then_jumps():
+def test_fast_mode_starts_with_the_prior_step_and_then_jumps():
     cal = Calibration(1000, 1000, 30000, -1670, 186000)
     a, f = make(WIDE, cal), make(WIDE, cal)
     f.set_mode(sc.MODE_FAST)
     a.update(20000)
-    f.update(20000)  # no excitation yet: exactly the paper's step
-    assert (f.i_ua, f.t_us) == (a.i_ua, a.t_us) and f.fast_jumps == 0
-    # the skin answers the new pulse with a further drop (Rp falls as I rises): the secant jumps further
-    a.update(17000)
-    f.update(17000)
+    f.update(20000)  # no secant yet: the Newton step with the least elasticity
+    q_k = cal.i0_ua * cal.t0_us
+    line = cal.y_star_pc + cal.mq * (20000 - cal.x_star_ohm)  # the paper's step
+    g = Fraction(sc.FAST_ELASTICITY_Q12, 4096) * cal.mq * 20000 / q_k
+    q_star = (line - g * q_k) / (1 - g)
     assert f.fast_jumps == 1
+    assert abs(f.i_ua * f.t_us - q_star) <= f.t_us / 2 + q_star / 2000  # charge-exact pulse
+    assert f.i_ua * f.t_us < a.i_ua * a.t_us < q_k  # the paper's direction, further
+    # the skin answers the new pulse with a further drop (Rp falls as I rises): the secant jumps further
+    a.update(15000)
+    f.update(15000)
+    assert f.fast_jumps == 2
     assert f.i_ua > a.i_ua and f.t_us < a.t_us  # same direction as the paper, further
     assert f.i_ua ** 2 * f.t_us == pytest.approx(cal.i0_ua**2 * cal.t0_us, rel=0.01)  # still on the mE curve

@@ -82,7 +82,7 @@ def test_intermediates_below_2_30_at_corners():
 @settings(max_examples=3000)
 @given(st.data())
 def test_fast_step_intermediates_below_2_30(data):
-    """MODE_FAST's secant step over its whole input space (any remembered pulse, any
+    """MODE_FAST's Newton step (secant or prior) over its whole input space (any remembered pulse, any
     new one), not only where whole scenarios happen to lead."""
     import sensation_core as sc
 
@@ -95,7 +95,7 @@ def test_fast_step_intermediates_below_2_30(data):
     c.set_mode(CORE.MODE_FAST)
     q = st.integers(1, lim.q_max_pc)
     rp = st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)
-    c._fok = 1
+    c._fok = data.draw(st.integers(0, 1))  # 0: the prior's step, 1: the secant's
     c._fq = data.draw(st.one_of(q, st.just(0)))
     c._frp = data.draw(rp)
     qf = data.draw(st.integers(1, c._qcap))
