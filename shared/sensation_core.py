@@ -391,6 +391,7 @@ class Controller:
         if q_k <= 0:
             return qf
         g = _SAT15  # "no estimate"
+        up = 1  # a jump that raises the charge: at most 2 paper steps (secant)
         if self._fok:
             dq = q_k - self._fq
             adq = dq if dq >= 0 else -dq
@@ -411,6 +412,7 @@ class Controller:
             g = (_frac12(x, q_k) * FAST_ELASTICITY_Q12) >> 12
             if g > 3891:
                 return qf
+            up = 2  # the prior's step does not pass the fixed point: at most 4 paper steps
         lq = qf >> 4  # L(Rp_k) in pC
         gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
         n = lq - gq
@@ -431,9 +433,9 @@ class Controller:
         jump = q_new - base
         if step == 0 or (jump > 0) != (step > 0):
             return qf  # not the paper's direction: keep the paper's step
-        if step > 0:  # more charge: at most 2 paper steps (overshoot here is what is felt)
-            if step < 0x8000000 and jump > step << 1:
-                q_new = base + (step << 1)
+        if step > 0:  # more charge: at most 2 (secant) or 4 (prior) paper steps: overshoot is felt
+            if step < 0x4000000 and jump > step << up:
+                q_new = base + (step << up)
         elif -step < 0x8000000 and -jump > -(step << 2):  # less charge: at most 4 paper steps
             q_new = base + (step << 2)
         if q_new <= 0:
