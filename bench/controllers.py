@@ -11,8 +11,9 @@ Metrics per run (docs/performance.md explains them):
   the mQ change of 0.5 us and 0.5 uA, if larger); pulse 0 is the first pulse
   measured on the changed skin, so 1 is the physical limit; "-" never settles;
 - mQ / mE RMS and peak relative error over the run (pulses with a pulse);
-- overshoot: the largest current and charge beyond the range between their
-  values before the disturbance and after settling, in % of that end value;
+- overshoot (shock risk): the largest current and charge above the range
+  between their values before the disturbance and after settling, in % of
+  that end value; "dip": the current's largest excursion below that range;
 - floor: pulses held at a sensation floor (I at i_min or T at t_min).
 Besides the six core modes the table has an "oracle" row: not a controller a
 device could run, but the law solved each pulse on the true simulated skin as
@@ -55,19 +56,49 @@ def _rp_on(e, i_ua, t_us):
     return probe.rp_kohm(i_ua, t_us) * 1000
 
 
-def best_pulse(c, e, i_ua, t_us):
+def best_pulse(c, e, i_ua, t_us, ceiling=False):
     """The integer pulse around (i_ua, t_us), within the limits, that lands nearest
-    the calibrated Q-Rp line on e's skin as it is now."""
+    the calibrated Q-Rp line on e's skin as it is now (at the ceiling: I around
+    i_ua, each with the duration <= t_max that puts it on the line)."""
     mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
     best = None
-    for t in (t_us - 1, t_us, t_us + 1):
-        for i in (i_ua - 1, i_ua, i_ua + 1):
-            if not (c.i_min_ua <= i <= c.i_max_ua and c.t_min_us <= t <= c.t_max_us and i * t <= c.q_max_pc):
-                continue
-            err = abs(i * t - Y - mq * (_rp_on(e, i, t) - X))
-            if best is None or err < best[0]:
-                best = (err, i, t)
+    pairs = [(i, t) for t in (t_us - 1, t_us, t_us + 1) for i in (i_ua - 1, i_ua, i_ua + 1)]
+    if ceiling:
+        pairs = []
+        for i in range(i_ua - 2, i_ua + 3):
+            if i > 0:
+                t = min(c.t_max_us, round((Y + mq * (_rp_on(e, i, c.t_max_us) - X)) / i))
+                pairs += [(i, t - 1), (i, t), (i, t + 1)]
+    for i, t in pairs:
+        if not (c.i_min_ua <= i <= c.i_max_ua and c.t_min_us <= t <= c.t_max_us and i * t <= c.q_max_pc):
+            continue
+        err = abs(i * t - Y - mq * (_rp_on(e, i, t) - X))
+        if best is None or err < best[0]:
+            best = (err, i, t)
     return (best[1], best[2]) if best else (i_ua, t_us)
+
+
+def oracle_current_at(c, e, t_us, i_ua):
+    """The current that puts a pulse of duration t_us on the Q-Rp line on e's skin
+    as it is now (the root nearest i_ua; i_ua itself if there is none)."""
+    mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
+
+    def f(i):
+        return Y + mq * (_rp_on(e, i, t_us) - X) - i * t_us
+
+    lo, hi = i_ua, i_ua
+    for _ in range(80):
+        lo, hi = lo / 1.05, hi * 1.05
+        for x0, x1 in ((lo, lo * 1.05), (hi / 1.05, hi)):
+            if (f(x0) > 0) != (f(x1) > 0):
+                for _ in range(50):
+                    m = 0.5 * (x0 + x1)
+                    if (f(m) > 0) == (f(x0) > 0):
+                        x0 = m
+                    else:
+                        x1 = m
+                return 0.5 * (x0 + x1)
+    return i_ua
 
 
 def oracle_charge(c, e, q_pc):
@@ -155,9 +186,17 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0):
         rows.append((k, i, t, rp, mq, c.status))
         c.update(rp)
         if mode == ORACLE and c.i_ua > 0:  # the law solved on the true skin, then the core's bounds
+            paper = (c.i_ua, c.t_us, c.status)
             q = oracle_charge(c, e, i * t)
             c._from_q(min(int(q * 16), 2**29))
-            if c.status == sc.ST_OK:  # and the integer pulse nearest the line on that skin
+            if c.status & sc.ST_T_MAX:  # the ceiling keeps the line: solve for I at t_max
+                i_line = oracle_current_at(c, e, c.t_max_us, c.i_ua)
+                if (c.i_min_ua <= i_line <= c.i_max_ua and i_line * c.t_max_us <= c.q_max_pc
+                        and _rp_on(e, i_line, c.t_max_us) <= sc.RP_MAX_OHM):
+                    c.i_ua, c.t_us = best_pulse(c, e, round(i_line), c.t_max_us, ceiling=True)
+                else:  # no pulse within the limits is on the line: the paper's step
+                    c.i_ua, c.t_us, c.status = paper
+            elif c.status == sc.ST_OK:  # and the integer pulse nearest the line on that skin
                 c.i_ua, c.t_us = best_pulse(c, e, round(q / c.t_us), c.t_us)
     return np.array(rows, dtype=float), c.mq_target_fc_per_ohm, c.me_ua2ms * 1000
 
@@ -168,7 +207,7 @@ def metrics(rows, target, me, events, n):
     err = np.where(on, mq - target, np.nan)
     thr = np.maximum(25.0, (0.5 * i + 0.5 * t) * 1000 / np.maximum(rp - X, 1))
     starts = [x.pulse for x in events] + [n]
-    settles, over_i, over_q = [], [], []
+    settles, over_i, over_q, under_i = [], [], [], []
     for a, b in zip(starts, starts[1:]):
         seg = slice(a, b)
         ok = np.abs(err[seg]) < thr[seg]
@@ -183,17 +222,21 @@ def metrics(rows, target, me, events, n):
             before_i, after_i = i[a - 1], i[a + s]
             before_q, after_q = i[a - 1] * t[a - 1], i[a + s] * t[a + s]
             lo_i, hi_i = min(before_i, after_i), max(before_i, after_i)
-            hi_q = max(before_q, after_q)  # charge: only above the range is a shock risk
+            hi_q = max(before_q, after_q)
             ii, qq = i[a : a + s + 1], i[a : a + s + 1] * t[a : a + s + 1]
-            over_i.append(max(0.0, (ii.max() - hi_i) / hi_i, (lo_i - ii[ii > 0].min()) / lo_i if (ii > 0).any() else 0))
+            # overshoot (shock risk): current or charge above the range; a dip of the
+            # current below it (less sensation, not a shock) is reported on its own
+            over_i.append(max(0.0, (ii.max() - hi_i) / hi_i))
             over_q.append(max(0.0, (qq.max() - hi_q) / hi_q))
+            under_i.append(max(0.0, (lo_i - ii[ii > 0].min()) / lo_i) if (ii > 0).any() else 0.0)
     rel_q = err[on] / target
     rel_e = (i[on] ** 2 * t[on] - me) / me
     floor = int(np.sum(((st.astype(int) & (sc.ST_I_MIN | sc.ST_T_MIN)) > 0) & on))
     return {
         "settle": settles, "rms_q": float(np.sqrt(np.nanmean(rel_q**2))), "peak_q": float(np.nanmax(np.abs(rel_q))),
         "rms_e": float(np.sqrt(np.mean(rel_e**2))), "peak_e": float(np.max(np.abs(rel_e))),
-        "over_i": max(over_i, default=0.0), "over_q": max(over_q, default=0.0), "floor": floor,
+        "over_i": max(over_i, default=0.0), "over_q": max(over_q, default=0.0),
+        "under_i": max(under_i, default=0.0), "floor": floor,
     }
 
 
@@ -234,8 +277,8 @@ def main():
                 continue
             ev, n = step_events(i0, d)
             cases.append((f"step {d:+d} kohm @ {i0} uA ({r0:.0f} kohm)", i0, ev, n))
-    print("| scenario | mode | pulses to settle (each disturbance) | mQ RMS / peak | mE RMS / peak | overshoot I / Q | pulses at a floor |")
-    print("|---|---|---|---|---|---|---|")
+    print("| scenario | mode | pulses to settle (each disturbance) | mQ RMS / peak | mE RMS / peak | overshoot I / Q | dip I | pulses at a floor |")
+    print("|---|---|---|---|---|---|---|---|")
     summary = {}
     for name, i0, ev, n in cases:
         runs = {}
@@ -246,7 +289,7 @@ def main():
             summary[(name, mode)] = m
             print(f"| {name} | {ALL_NAMES[mode]} | {', '.join(fmt_settle(s) for s in m['settle'])} | "
                   f"{m['rms_q']:.2%} / {m['peak_q']:.1%} | {m['rms_e']:.2%} / {m['peak_e']:.1%} | "
-                  f"{m['over_i']:.1%} / {m['over_q']:.1%} | {m['floor']} |")
+                  f"{m['over_i']:.1%} / {m['over_q']:.1%} | {m['under_i']:.1%} | {m['floor']} |")
         if a.plots and not name.startswith("step") or (a.plots and name.startswith("step -30 kohm @ 1000")):
             plot(name, runs, Path(a.plots))
     # the issue's criteria for MODE_FAST against the paper's mode; the oracle
@@ -260,10 +303,10 @@ def main():
             if (sa is None or sa > 2) and (sf is None or sf > 2):
                 line = f"{name} #{j}: fast {fmt_settle(sf)} (akhtar {fmt_settle(sa)}, oracle {fmt_settle(so)})"
                 (impossible if so is None or so > 2 else fails).append(line)
-        if fa["rms_q"] > ak["rms_q"] / 2 + 1e-6:  # (+1e-6: a run with no error at all)
+        if fa["rms_q"] > ak["rms_q"] / 2 + 1e-4:  # (+1e-4: a run with no error to speak of)
             line = (f"{name}: fast mQ RMS {fa['rms_q']:.2%} > half of akhtar's {ak['rms_q']:.2%} "
                     f"(oracle {orc['rms_q']:.2%})")
-            (impossible if orc["rms_q"] > ak["rms_q"] / 2 + 1e-6 else fails).append(line)
+            (impossible if orc["rms_q"] > ak["rms_q"] / 2 + 1e-4 else fails).append(line)
         if fa["over_i"] > 0.05 or fa["over_q"] > 0.05:
             fails.append(f"{name}: fast overshoot I {fa['over_i']:.1%} / Q {fa['over_q']:.1%}")
     print(f"MODE_FAST criteria: {len(fails)} not met, {len(impossible)} out of reach of the oracle too")

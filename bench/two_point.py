@@ -74,10 +74,18 @@ def pulse2_errors(i0, event):
         def f(q):
             return bench.Y + mq * (v_inv(v(r1) + slope * (u(q) - u(q1))) - bench.X) - q
 
-        try:
-            q2 = _root(f, q_star / 3, q_star * 3)
-        except (ValueError, OverflowError):
-            q2 = None
+        q2 = None
+        lo = q1  # the root nearest pulse 1: scan outwards from it
+        for k in range(1, 60):
+            try:
+                for a, b in ((q1 * 0.97 ** k, q1 * 0.97 ** (k - 1)), (q1 * 1.03 ** (k - 1), q1 * 1.03 ** k)):
+                    q2 = _root(f, a, b)
+                    if q2 is not None:
+                        break
+            except (ValueError, OverflowError):
+                q2 = None
+            if q2 is not None:
+                break
         if q2 is None:
             out[name] = None
             continue
@@ -97,8 +105,8 @@ def main():
                 continue
             events, _ = bench.step_events(i0, d)
             ratio, errs, beyond = pulse2_errors(i0, events[0])
-            if beyond:  # no pulse within the limits is on the line: not a question of models
-                print(f"| {d:+d} kohm @ {i0} uA | (the law's point needs T > t_max) |" + " |" * len(MODELS))
+            if beyond:  # the law's pulse is at the duration ceiling: not a point on the mE curve
+                print(f"| {d:+d} kohm @ {i0} uA | (the law's point is at the duration ceiling, off the mE curve) |" + " |" * len(MODELS))
                 continue
             n += 1
             cells = []

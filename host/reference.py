@@ -85,9 +85,9 @@ def exact_step(lim: Limits, cal: Calibration, rp_ohm: int, mode: int = sc.MODE_A
     i_free = me / q
     t_free = q * q / me
     i, t = i_free, t_free
-    if t > lim.t_max_us:
+    if t > lim.t_max_us:  # the ceiling keeps the charge on the line
         t = Fraction(lim.t_max_us)
-        i = _sqrt(me / t)
+        i = q / t
         st |= sc.ST_T_MAX
     elif t < lim.t_min_us:
         t = Fraction(lim.t_min_us)
@@ -129,7 +129,7 @@ def float_steps(lim: Limits, cal: Calibration, rp_ohm) -> dict[str, np.ndarray]:
         t = q * q / me
         hi_t = t > lim.t_max_us
         lo_t = ~hi_t & (t < lim.t_min_us)
-        i = np.where(hi_t, np.sqrt(me / lim.t_max_us), np.where(lo_t, np.sqrt(me / lim.t_min_us), i))
+        i = np.where(hi_t, q / lim.t_max_us, np.where(lo_t, np.sqrt(me / lim.t_min_us), i))
         t = np.where(hi_t, lim.t_max_us, np.where(lo_t, lim.t_min_us, t))
         st |= np.where(hi_t, sc.ST_T_MAX, 0) | np.where(lo_t, sc.ST_T_MIN, 0)
         lo_i = i < lim.i_min_ua

@@ -34,7 +34,7 @@ ST_OK = const(0)
 ST_I_MIN = const(0x001)  # I held at i_min (T solved from mE where possible)
 ST_I_MAX = const(0x002)  # I held at i_max (mE not kept: safety)
 ST_T_MIN = const(0x004)  # T held at t_min, I solved from mE
-ST_T_MAX = const(0x008)  # T held at t_max, I solved from mE
+ST_T_MAX = const(0x008)  # T at the ceiling: I = ceil(Q/t_max), T = Q/I <= t_max (charge on the line, not mE)
 ST_Q_MAX = const(0x010)  # charge limited to q_max
 ST_RP_LOW = const(0x020)  # fault: Rp below RP_MIN_OHM (or at/below x*)
 ST_RP_HIGH = const(0x040)  # fault: Rp above RP_MAX_OHM (electrode off)
@@ -224,7 +224,7 @@ class Controller:
         self._fq = 0  # MODE_FAST: charge (pC) and Rp of the pulse before the last one
         self._frp = 0
         self._fok = 0  # 1: that pulse was a clean step (no fault, no bound)
-        self.fast_jumps = 0  # telemetry/diagnostics: secant jumps taken
+        self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -338,11 +338,22 @@ class Controller:
         if qf <= 0:
             self._fok = 0
             return self.stop(ST_Q_NONPOS)
+        st = -1
         if mode == MODE_FAST:
-            dq = qf - (q_k << 4)  # 1/16 pC; on the line within 1/2 uA and 1/2 us: the paper's step
-            if (dq if dq >= 0 else -dq) >= (self.i_ua + self.t_us) << 3:
-                qf = self._fast(qf, q_k, rp_ohm)
-        st = self._from_q(qf)
+            # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
+            # where I and T are split for the charge, 1/2 us): the paper's step
+            ceiling = self.status & ST_T_MAX  # the pulse just measured was at the ceiling
+            dq = qf - (q_k << 4)  # 1/16 pC
+            if (dq if dq >= 0 else -dq) >= (self.i_ua + (0 if ceiling else self.t_us)) << 3:
+                q_new = self._fast(qf, q_k, rp_ohm)
+                if q_new != qf:
+                    st = self._from_q(q_new)
+                    if (st & ST_T_MAX) != ceiling:  # the step models one path (mE curve or ceiling): stay on it
+                        st = -1
+                    elif self.fast_jumps < _SAT30:  # a counter must never become a long int
+                        self.fast_jumps += 1
+        if st < 0:
+            st = self._from_q(qf)
         # MODE_FAST remembers this pulse for the next secant
         self._fq = q_k
         self._frp = rp_ohm
@@ -405,12 +416,17 @@ class Controller:
                     g = -g
                 if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
                     return qf
-        if g == _SAT15:  # the prior: G >= elasticity * mQ Rp / Q
+        if g == _SAT15:  # the prior: |G| >= elasticity * mQ Rp / Q
+            ceiling = self.status == ST_T_MAX  # the pulse just measured was held at t_max
+            if self.status != ST_OK and not ceiling:  # another bound: no model of that path
+                return qf
             x = _muldiv(self._a, rp_ohm, self._d0, 0, _MQ_CAP)  # mQ Rp (pC)
             if x >= q_k << 1:
                 return qf
             g = (_frac12(x, q_k) * FAST_ELASTICITY_Q12) >> 12
-            if g > 3891:
+            if ceiling:  # T fixed, only I moves: Rp falls as the charge rises, G < 0
+                g = -g
+            elif g > 3891:
                 return qf
             up = 2  # the prior's step does not pass the fixed point: at most 4 paper steps
         lq = qf >> 4  # L(Rp_k) in pC
@@ -440,8 +456,6 @@ class Controller:
             q_new = base + (step << 2)
         if q_new <= 0:
             return qf
-        if self.fast_jumps < _SAT30:  # a counter must never become a long int
-            self.fast_jumps += 1
         return q_new
 
     def _from_q(self, qf):
@@ -455,10 +469,19 @@ class Controller:
         t = _t_from_qf(qf, self.i0_ua, self.t0_us)
         t_min = self.t_min_us
         t_max = self.t_max_us
-        # duration bounds: hold T, solve I from mE (Discussion)
+        # duration bounds. Ceiling (ours: the paper has none): keep the charge on
+        # the Q-Rp line at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so
+        # I*T is within I/2 pC of Q (mE then above its value).
+        # Floor (Discussion: a sensation threshold): hold T, solve I from mE.
         if t > t_max:
+            i = (qf + (t_max << 4) - 1) // (t_max << 4)
+            if self.i_ua == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours
+                i += 1  # (Rp follows I, so the line's charge for I lies between the two)
             t = t_max
-            i = _isqrt_round(_div_small(self._eh, self._el, t_max))
+            if i <= self.i_max_ua:  # (above it the current ceiling below holds I at i_max)
+                t = (qf + (i << 3)) // (i << 4)
+                if t < t_min:
+                    t = t_min
             st |= ST_T_MAX
         elif t < t_min:
             t = t_min

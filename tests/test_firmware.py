@@ -62,9 +62,12 @@ def _phase_errors(tel, windows):
     for lo, hi in windows:
         w = [t for t in tel if lo <= t.time_us / 1e6 < hi and t.i_ua]
         assert w, (lo, hi)
+        # the mean over the pause: each pulse's reading carries ADC noise and a 1-LSB dither
+        # (at 377 uA one Vp step is 0.13 % of mQ, about 34 fC/ohm), which a median would pick
+        # one level of; the mean estimates the delivered mQ
         out.append(
             (
-                statistics.median(t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm for t in w),
+                statistics.mean(t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm for t in w),
                 max(t.status for t in w),
             )
         )
@@ -88,17 +91,15 @@ def peel_runs():
     return runs
 
 
-def test_peel_controller_holds_mq_after_each_step_within_bounds(peel_runs):
+def test_peel_controller_holds_mq_after_each_step(peel_runs):
     """With the controller, the measured mQ is back within 25 fC/ohm (2.5e-5 uC/kohm) of its
-    target in every pause where no bound is active; where the law needs T > t_max it says so."""
+    target in the pause after every step: 25, 50, 75 % peeled and re-applied. After 75 % the
+    law's own pulse would need T > 8 ms: T is held at t_max with the charge kept on the line
+    (docs/controller.md), and the status says so."""
     phases = _phase_errors(peel_runs[sc.MODE_AKHTAR], PEEL_WINDOWS)
     for (err, status), (lo, _) in zip(phases, PEEL_WINDOWS):
-        if status & sc.ST_BOUND_MASK:
-            assert status & sc.ST_T_MAX, (lo, status)  # the 75 % peel: held at t_max, reported
-        else:
-            assert abs(err) < 25, (lo, err)
-    in_bounds = [p for p in phases if not p[1] & sc.ST_BOUND_MASK]
-    assert len(in_bounds) >= 4  # before, 25 %, 50 %, re-applied
+        assert abs(err) < 25, (lo, err)
+    assert [bool(status & sc.ST_T_MAX) for _, status in phases] == [False, False, False, True, False]
 
 
 def test_peel_open_loop_does_not_hold_mq(peel_runs):
