@@ -78,27 +78,31 @@ def best_pulse(c, e, i_ua, t_us, ceiling=False):
     return (best[1], best[2]) if best else (i_ua, t_us)
 
 
+def nearest_root(f, u0, step=0.05, n=80):
+    """The root of f nearest u0: widen by `step` on both sides until f changes sign
+    within one step (steps where f is not finite are passed over), then bisect.
+    None if there is no sign change within n steps."""
+    for k in range(1, n + 1):
+        for lo, hi in ((u0 - step * k, u0 - step * (k - 1)), (u0 + step * (k - 1), u0 + step * k)):
+            a, b = f(lo), f(hi)
+            if not (math.isfinite(a) and math.isfinite(b)) or (a > 0) == (b > 0):
+                continue
+            for _ in range(50):
+                m = 0.5 * (lo + hi)
+                if (f(m) > 0) == (a > 0):
+                    lo = m
+                else:
+                    hi = m
+            return 0.5 * (lo + hi)
+    return None
+
+
 def oracle_current_at(c, e, t_us, i_ua):
     """The current that puts a pulse of duration t_us on the Q-Rp line on e's skin
     as it is now (the root nearest i_ua; i_ua itself if there is none)."""
     mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
-
-    def f(i):
-        return Y + mq * (_rp_on(e, i, t_us) - X) - i * t_us
-
-    lo, hi = i_ua, i_ua
-    for _ in range(80):
-        lo, hi = lo / 1.05, hi * 1.05
-        for x0, x1 in ((lo, lo * 1.05), (hi / 1.05, hi)):
-            if (f(x0) > 0) != (f(x1) > 0):
-                for _ in range(50):
-                    m = 0.5 * (x0 + x1)
-                    if (f(m) > 0) == (f(x0) > 0):
-                        x0 = m
-                    else:
-                        x1 = m
-                return 0.5 * (x0 + x1)
-    return i_ua
+    u = nearest_root(lambda u: Y + mq * (_rp_on(e, math.exp(u), t_us) - X) - math.exp(u) * t_us, math.log(i_ua))
+    return i_ua if u is None else math.exp(u)
 
 
 def oracle_charge(c, e, q_pc):
@@ -111,22 +115,8 @@ def oracle_charge(c, e, q_pc):
         q = math.exp(lq)
         return Y + mq * (_rp_on(e, me / q, q * q / me) - X) - q
 
-    lq = math.log(q_pc)
-    f0 = f(lq)
-    if f0 == 0:
-        return q_pc
-    for k in range(1, 80):  # widen in both directions until the sign changes
-        for lo, hi in ((lq - 0.05 * k, lq - 0.05 * (k - 1)), (lq + 0.05 * (k - 1), lq + 0.05 * k)):
-            a, b = f(lo), f(hi)
-            if (a > 0) != (b > 0):
-                for _ in range(50):
-                    m = 0.5 * (lo + hi)
-                    if (f(m) > 0) == (a > 0):
-                        lo = m
-                    else:
-                        hi = m
-                return math.exp(0.5 * (lo + hi))
-    return c.q_max_pc * 2.0  # no root within e^4: beyond every bound
+    u = nearest_root(f, math.log(q_pc))
+    return c.q_max_pc * 2.0 if u is None else math.exp(u)  # none within e^4: beyond every bound
 
 
 @dataclass

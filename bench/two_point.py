@@ -35,19 +35,6 @@ MODELS = {
 }
 
 
-def _root(f, lo, hi):
-    a = f(lo)
-    if (a > 0) == (f(hi) > 0):
-        return None
-    for _ in range(100):
-        m = 0.5 * (lo + hi)
-        if (f(m) > 0) == (a > 0):
-            lo = m
-        else:
-            hi = m
-    return 0.5 * (lo + hi)
-
-
 def pulse2_errors(i0, event):
     """Q1 / Q* of FAST's pulse 1, the mQ error (% of mQ) of pulse 2 for each model,
     and whether the law's point itself needs T > t_max."""
@@ -71,24 +58,17 @@ def pulse2_errors(i0, event):
     for name, (u, v, v_inv) in MODELS.items():
         slope = (v(r1) - v(r0)) / (u(q1) - u(q0))
 
-        def f(q):
-            return bench.Y + mq * (v_inv(v(r1) + slope * (u(q) - u(q1))) - bench.X) - q
-
-        q2 = None
-        lo = q1  # the root nearest pulse 1: scan outwards from it
-        for k in range(1, 60):
+        def f(lq):
             try:
-                for a, b in ((q1 * 0.97 ** k, q1 * 0.97 ** (k - 1)), (q1 * 1.03 ** (k - 1), q1 * 1.03 ** k)):
-                    q2 = _root(f, a, b)
-                    if q2 is not None:
-                        break
-            except (ValueError, OverflowError):
-                q2 = None
-            if q2 is not None:
-                break
-        if q2 is None:
+                return bench.Y + mq * (v_inv(v(r1) + slope * (u(math.exp(lq)) - u(q1))) - bench.X) - math.exp(lq)
+            except (ValueError, OverflowError):  # outside the model's domain
+                return math.nan
+
+        lq2 = bench.nearest_root(f, math.log(q1), step=0.03, n=60)  # the root nearest pulse 1
+        if lq2 is None:
             out[name] = None
             continue
+        q2 = math.exp(lq2)
         rp2 = bench._rp_on(e, me / q2, q2 * q2 / me)
         out[name] = ((q2 - bench.Y) / (rp2 - bench.X) - mq) / mq * 100
     return q1 / q_star, out, q_star * q_star / me > c.t_max_us
