@@ -347,8 +347,14 @@ class Controller:
             if (dq if dq >= 0 else -dq) >= (self.i_ua + (0 if ceiling else self.t_us)) << 3:
                 q_new = self._fast(qf, q_k, rp_ohm)
                 if q_new != qf:
+                    i_k = self.i_ua  # (_from_q reads the measured pulse: keep it for a retry)
+                    t_k = self.t_us
+                    s_k = self.status
                     st = self._from_q(q_new)
                     if (st & ST_T_MAX) != ceiling:  # the step models one path (mE curve or ceiling): stay on it
+                        self.i_ua = i_k
+                        self.t_us = t_k
+                        self.status = s_k
                         st = -1
                     elif self.fast_jumps < _SAT30:  # a counter must never become a long int
                         self.fast_jumps += 1

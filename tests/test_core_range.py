@@ -96,6 +96,7 @@ def test_fast_step_intermediates_below_2_30(data):
     q = st.integers(1, lim.q_max_pc)
     rp = st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)
     c._fok = data.draw(st.integers(0, 1))  # 0: the prior's step, 1: the secant's
+    c.status = data.draw(st.sampled_from([sc.ST_OK, sc.ST_T_MAX]))  # the prior on the mE curve or the ceiling
     c._fq = data.draw(st.one_of(q, st.just(0)))
     c._frp = data.draw(rp)
     qf = data.draw(st.integers(1, c._qcap))
