@@ -339,10 +339,10 @@ class Controller:
             self._fok = 0
             return self.stop(ST_Q_NONPOS)
         st = -1
+        ceiling = self.status & ST_T_MAX  # the pulse just measured was at the duration ceiling
         if mode == MODE_FAST:
             # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
             # where I and T are split for the charge, 1/2 us): the paper's step
-            ceiling = self.status & ST_T_MAX  # the pulse just measured was at the ceiling
             dq = qf - (q_k << 4)  # 1/16 pC
             if (dq if dq >= 0 else -dq) >= (self.i_ua + (0 if ceiling else self.t_us)) << 3:
                 q_new = self._fast(qf, q_k, rp_ohm)
@@ -359,7 +359,21 @@ class Controller:
                     elif self.fast_jumps < _SAT30:  # a counter must never become a long int
                         self.fast_jumps += 1
         if st < 0:
+            i_k = self.i_ua
             st = self._from_q(qf)
+            if mode == MODE_FAST and st == ST_T_MAX and not ceiling and i_k > self.i_ua:
+                # entering the ceiling from the mE curve at a lower current I: Rp will rise
+                # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
+                # of the law on that Rp (I < 2**10: the divisor scaled into _muldiv's range)
+                i = self.i_ua
+                if i < 1024:
+                    dr = _muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
+                else:
+                    dr = _muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
+                dr = (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
+                rp2 = rp_ohm + dr
+                if rp2 <= RP_MAX_OHM:
+                    st = self._from_q(self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap))
         # MODE_FAST remembers this pulse for the next secant
         self._fq = q_k
         self._frp = rp_ohm

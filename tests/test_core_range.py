@@ -102,3 +102,41 @@ def test_fast_step_intermediates_below_2_30(data):
     qf = data.draw(st.integers(1, c._qcap))
     q_new = c._fast(qf, data.draw(q), data.draw(rp))
     assert 0 < q_new <= c._qcap + 1
+
+
+
+@settings(max_examples=2000)
+@given(st.data())
+def test_fast_ceiling_entry_intermediates_below_2_30(data):
+    """MODE_FAST's correction when the paper's step enters the duration ceiling from a
+    pulse at a higher current (any such pulse, any Rp), not only where scenarios lead."""
+    import sensation_core as sc
+
+    from strategies import calibration, limits
+
+    lim = data.draw(limits())
+    cal = data.draw(calibration(lim))
+    c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
+    c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    c.set_mode(CORE.MODE_FAST)
+    i_k = data.draw(st.integers(lim.i_min_ua, min(lim.i_max_ua, lim.q_max_pc // lim.t_min_us)))
+    t_k = data.draw(st.integers(lim.t_min_us, min(lim.t_max_us, lim.q_max_pc // i_k)))
+    c.delivered(i_k, t_k)
+    c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
+
+
+def test_fast_ceiling_entry_corrects_the_papers_current():
+    """The case that needs it (bench: +20 kohm at 700 uA): from 388 uA x 3255 us the paper's
+    step enters the ceiling at 252 uA, where this skin reads over 200 kohm; FAST asks more."""
+    import sensation_core as sc
+
+    lim = (100, 10000, 50, 8000, 10_000_000)
+    paper, fast = CORE.Controller(*lim), CORE.Controller(*lim)
+    for c in (paper, fast):
+        c.calibrate(700, 1000, 34641, -1670, 186000)
+        c.delivered(388, 3255)
+    fast.set_mode(CORE.MODE_FAST)
+    assert paper.update(127069) == fast.update(127069) == sc.ST_T_MAX
+    assert paper.i_ua == 252  # ceil(2 008 364 pC / 8000 us)
+    # Rp predicted with the least elasticity: 127069 (1 + 0.45 (388 - 252) / 252) = 158 kohm
+    assert 300 <= fast.i_ua <= 310 and fast.t_us <= 8000
