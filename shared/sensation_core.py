@@ -429,13 +429,12 @@ class Controller:
             if adq >= 64 and adq >= (q_k >> 5):  # enough excitation for a secant
                 dr = rp_ohm - self._frp
                 x = _muldiv(self._a, dr if dr >= 0 else -dr, self._d0, 0, _MQ_CAP)  # mQ |dRp| (pC)
-                if x >= adq << 1:  # |G| >= 2: the linear model is not trustworthy
-                    return qf
-                g = _frac12(x, adq)  # |G| in Q.12
-                if (dr < 0) != (dq < 0):
-                    g = -g
-                if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
-                    return qf
+                if x < adq << 1:  # else |G| >= 2: the linear model is not trustworthy
+                    g = _frac12(x, adq)  # |G| in Q.12
+                    if (dr < 0) != (dq < 0):
+                        g = -g
+                    if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
+                        g = _SAT15
         if g == _SAT15:  # the prior: |G| >= elasticity * mQ Rp / Q
             ceiling = self.status == ST_T_MAX  # the pulse just measured was held at t_max
             if self.status != ST_OK and not ceiling:  # another bound: no model of that path
