@@ -224,6 +224,7 @@ class Controller:
         self._fq = 0  # MODE_FAST: charge (pC) and Rp of the pulse before the last one
         self._frp = 0
         self._fok = 0  # 1: that pulse was a clean step (no fault, no bound)
+        self._fdr = 0  # MODE_FAST: Rp's last change not explained by our own step (ohm)
         self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
@@ -279,6 +280,7 @@ class Controller:
         self.mq_target_fc_per_ohm = _muldiv(self._a, 1000, self._d0, 0, _MQ_CAP)
         self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
         self._fok = 0
+        self._fdr = 0
         self.rp_ohm = rp0_ohm
         self.i_ua = i0_ua
         self.t_us = t0_us
@@ -291,6 +293,7 @@ class Controller:
             raise ValueError("mode=%d out of range [%d, %d]" % (mode, MODE_OPEN_LOOP, MODE_FAST))
         if mode != self.mode:
             self._fok = 0
+            self._fdr = 0
         self.mode = mode
 
     def delivered(self, i_ua, t_us):
@@ -303,6 +306,7 @@ class Controller:
     def stop(self, status):
         """Next pulse: none (i_ua = t_us = 0), with the given fault status."""
         self._fok = 0
+        self._fdr = 0
         self.i_ua = 0
         self.t_us = 0
         self.status = status
@@ -341,6 +345,7 @@ class Controller:
         st = -1
         ceiling = self.status & ST_T_MAX  # the pulse just measured was at the duration ceiling
         if mode == MODE_FAST:
+            qf = self._drift(qf, q_k, rp_ohm)
             # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
             # where I and T are split for the charge, 1/2 us): the paper's step
             dq = qf - (q_k << 4)  # 1/16 pC
@@ -379,6 +384,35 @@ class Controller:
         self._frp = rp_ohm
         self._fok = 1 if (st == ST_OK and q_k > 0) else 0
         return st
+
+    def _drift(self, qf, q_k, rp_ohm):
+        """MODE_FAST under a falling drift (sweat, gel soaking in): Rp's change since the
+        last pulse less what our own step explains (with the least elasticity) is the
+        skin moving; when it has fallen two pulses running, the law is applied to Rp
+        one pulse ahead (the smaller of the two falls, at most Rp/16). Only falls:
+        a rising drift would raise the charge on a prediction."""
+        drift = 0
+        if self._fok and q_k > 0:
+            dq = q_k - self._fq
+            adq = dq if dq >= 0 else -dq
+            if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
+                f = _frac12(adq, q_k)  # |dQ|/Q in Q.12, < 128
+                e = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)  # Rp |dQ| / Q
+                e = (e * FAST_ELASTICITY_Q12) >> 12
+                drift = rp_ohm - self._frp - (e if dq >= 0 else -e)
+        prev = self._fdr
+        self._fdr = drift
+        if drift >= 0 or prev >= 0:
+            return qf
+        d = drift if drift > prev else prev  # the smaller fall
+        if -d < rp_ohm >> 9:  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
+            return qf
+        if -d > rp_ohm >> 4:
+            d = -(rp_ohm >> 4)
+        rp2 = rp_ohm + d
+        if rp2 < RP_MIN_OHM:
+            return qf
+        return self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap)
 
     def _fixed_current(self, mode, rp_ohm):
         """The baseline laws: I = I0; T from the mode's law, then the bounds."""
