@@ -342,47 +342,57 @@ class Controller:
         if qf <= 0:
             self._fok = 0
             return self.stop(ST_Q_NONPOS)
-        st = -1
-        ceiling = self.status & ST_T_MAX  # the pulse just measured was at the duration ceiling
         if mode == MODE_FAST:
-            qf = self._drift(qf, q_k, rp_ohm)
-            # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
-            # where I and T are split for the charge, 1/2 us): the paper's step
-            dq = qf - (q_k << 4)  # 1/16 pC
-            if (dq if dq >= 0 else -dq) >= (self.i_ua + (0 if ceiling else self.t_us)) << 3:
-                q_new = self._fast(qf, q_k, rp_ohm)
-                if q_new != qf:
-                    i_k = self.i_ua  # (_from_q reads the measured pulse: keep it for a retry)
-                    t_k = self.t_us
-                    s_k = self.status
-                    st = self._from_q(q_new)
-                    if (st & ST_T_MAX) != ceiling:  # the step models one path (mE curve or ceiling): stay on it
-                        self.i_ua = i_k
-                        self.t_us = t_k
-                        self.status = s_k
-                        st = -1
-                    elif self.fast_jumps < _SAT30:  # a counter must never become a long int
-                        self.fast_jumps += 1
-        if st < 0:
-            i_k = self.i_ua
+            st = self._fast_pulse(qf, q_k, rp_ohm)
+        else:
             st = self._from_q(qf)
-            if mode == MODE_FAST and st == ST_T_MAX and not ceiling and i_k > self.i_ua:
-                # entering the ceiling from the mE curve at a lower current I: Rp will rise
-                # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
-                # of the law on that Rp (I < 2**10: the divisor scaled into _muldiv's range)
-                i = self.i_ua
-                if i < 1024:
-                    dr = _muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
-                else:
-                    dr = _muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
-                dr = (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
-                rp2 = rp_ohm + dr
-                if rp2 <= RP_MAX_OHM:
-                    st = self._from_q(self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap))
         # MODE_FAST remembers this pulse for the next secant
         self._fq = q_k
         self._frp = rp_ohm
         self._fok = 1 if (st == ST_OK and q_k > 0) else 0
+        return st
+
+    def _fast_pulse(self, qf, q_k, rp_ohm):
+        """MODE_FAST's next pulse from the paper's step qf (1/16 pC): the drift
+        prediction, then a Newton step that stays on the path of the measured pulse
+        (mE curve or duration ceiling), else the paper's step, corrected when it
+        enters the ceiling from a higher current. docs/controller.md gives the rules."""
+        i_k = self.i_ua  # the measured pulse (_from_q reads it: restored for a retry)
+        t_k = self.t_us
+        s_k = self.status
+        ceiling = s_k & ST_T_MAX
+        qf = self._drift(qf, q_k, rp_ohm)
+        # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
+        # where I and T are split for the charge, 1/2 us): the paper's step
+        dq = qf - (q_k << 4)  # 1/16 pC
+        if (dq if dq >= 0 else -dq) >= (i_k + (0 if ceiling else t_k)) << 3:
+            q_new = self._fast(qf, q_k, rp_ohm)
+            if q_new != qf:
+                st = self._from_q(q_new)
+                if (st & ST_T_MAX) == ceiling:
+                    if self.fast_jumps < _SAT30:  # a counter must never become a long int
+                        self.fast_jumps += 1
+                    return st
+                self.i_ua = i_k
+                self.t_us = t_k
+                self.status = s_k
+        st = self._from_q(qf)
+        i = self.i_ua
+        if st == ST_T_MAX and not ceiling and i < i_k:
+            # entering the ceiling from the mE curve at a lower current I: Rp will rise
+            # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
+            # of the law on that Rp (I < 2**10: the divisor scaled into _muldiv's range)
+            if i < 1024:
+                dr = _muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
+            else:
+                dr = _muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
+            dr = (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
+            rp2 = rp_ohm + dr
+            if rp2 <= RP_MAX_OHM:
+                self.i_ua = i_k
+                self.t_us = t_k
+                self.status = s_k
+                st = self._from_q(self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap))
         return st
 
     def _drift(self, qf, q_k, rp_ohm):
