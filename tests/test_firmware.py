@@ -80,7 +80,7 @@ PEEL_WINDOWS = [(4.0, 5.0), (9.5, 10.5), (15.0, 16.0), (20.5, 21.5), (27.0, 28.0
 @pytest.fixture(scope="module")
 def peel_runs():
     runs = {}
-    for mode in (sc.MODE_AKHTAR, sc.MODE_OPEN_LOOP):
+    for mode in (sc.MODE_AKHTAR, sc.MODE_OPEN_LOOP, sc.MODE_FAST):
         reports, _, _ = run_fw(f"""
             s, board, usb, clock = make("peel", n=1)
             start(s, mode={mode}, limits=(100, 10000, 50, 8000, 10000000))
@@ -100,6 +100,14 @@ def test_peel_controller_holds_mq_after_each_step(peel_runs):
     for (err, status), (lo, _) in zip(phases, PEEL_WINDOWS):
         assert abs(err) < 25, (lo, err)
     assert [bool(status & sc.ST_T_MAX) for _, status in phases] == [False, False, False, True, False]
+
+
+def test_peel_fast_mode_holds_mq_after_each_step_in_the_firmware(peel_runs):
+    """MODE_FAST through the whole firmware (supervisor, heap-locked frames, ADC noise)."""
+    phases = _phase_errors(peel_runs[sc.MODE_FAST], PEEL_WINDOWS)
+    for (err, _), (lo, _) in zip(phases, PEEL_WINDOWS):
+        assert abs(err) < 25, (lo, err)
+    assert all(t.stop == hp.STOP_NONE for t in peel_runs[sc.MODE_FAST])
 
 
 def test_peel_open_loop_does_not_hold_mq(peel_runs):
