@@ -62,9 +62,9 @@ def _phase_errors(tel, windows):
     for lo, hi in windows:
         w = [t for t in tel if lo <= t.time_us / 1e6 < hi and t.i_ua]
         assert w, (lo, hi)
-        # the mean over the pause: each pulse's reading carries ADC noise and a 1-LSB dither
-        # (at 377 uA one Vp step is 0.13 % of mQ, about 34 fC/ohm), which a median would pick
-        # one level of; the mean estimates the delivered mQ
+        # the mean over the pause: single readings carry ADC noise of up to +-100 fC/ohm here
+        # (one Vp step at 377 uA is 0.13 % of mQ, about 34 fC/ohm); the mean of the ~50
+        # readings estimates the delivered mQ
         out.append(
             (
                 statistics.mean(t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm for t in w),
