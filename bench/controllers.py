@@ -56,11 +56,16 @@ def _rp_on(e, i_ua, t_us):
     return probe.rp_kohm(i_ua, t_us) * 1000
 
 
+def mq_of(c):
+    """The calibrated mQ of controller c in pC/ohm (float)."""
+    return (c.i0_ua * c.t0_us - c.y_star_pc) / (c.rp0_ohm - c.x_star_ohm)
+
+
 def best_pulse(c, e, i_ua, t_us, ceiling=False):
     """The integer pulse around (i_ua, t_us), within the limits, that lands nearest
     the calibrated Q-Rp line on e's skin as it is now (at the ceiling: I around
     i_ua, each with the duration <= t_max that puts it on the line)."""
-    mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
+    mq = mq_of(c)
     best = None
     pairs = [(i, t) for t in (t_us - 1, t_us, t_us + 1) for i in (i_ua - 1, i_ua, i_ua + 1)]
     if ceiling:
@@ -100,7 +105,7 @@ def nearest_root(f, u0, step=0.05, n=80):
 def oracle_current_at(c, e, t_us, i_ua):
     """The current that puts a pulse of duration t_us on the Q-Rp line on e's skin
     as it is now (the root nearest i_ua; i_ua itself if there is none)."""
-    mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
+    mq = mq_of(c)
     u = nearest_root(lambda u: Y + mq * (_rp_on(e, math.exp(u), t_us) - X) - math.exp(u) * t_us, math.log(i_ua))
     return i_ua if u is None else math.exp(u)
 
@@ -109,7 +114,7 @@ def oracle_charge(c, e, q_pc):
     """The law's self-consistent charge on e's skin as it is now: the root of
     Q = y* + mQ (Rp(mE/Q, Q^2/mE) - x*) nearest q_pc along the mE curve (pC)."""
     me = c.i0_ua * c.i0_ua * c.t0_us
-    mq = (c.i0_ua * c.t0_us - Y) / (c.rp0_ohm - X)
+    mq = mq_of(c)
 
     def f(lq):
         q = math.exp(lq)
@@ -117,6 +122,23 @@ def oracle_charge(c, e, q_pc):
 
     u = nearest_root(f, math.log(q_pc))
     return c.q_max_pc * 2.0 if u is None else math.exp(u)  # none within e^4: beyond every bound
+
+
+def oracle_pulse(c, e, q_pc):
+    """Replace c's proposal (the paper's step, just made) by the law solved on the true
+    skin e, through the core's bounds, then the integer pulse nearest the line there."""
+    paper = (c.i_ua, c.t_us, c.status)
+    q = oracle_charge(c, e, q_pc)
+    c._from_q(min(int(q * 16), 2**29))
+    if c.status & sc.ST_T_MAX:  # the ceiling keeps the line: solve for I at t_max
+        i_line = oracle_current_at(c, e, c.t_max_us, c.i_ua)
+        if (c.i_min_ua <= i_line <= c.i_max_ua and i_line * c.t_max_us <= c.q_max_pc
+                and _rp_on(e, i_line, c.t_max_us) <= sc.RP_MAX_OHM):
+            c.i_ua, c.t_us = best_pulse(c, e, round(i_line), c.t_max_us, ceiling=True)
+        else:  # no pulse within the limits is on the line: the paper's step
+            c.i_ua, c.t_us, c.status = paper
+    elif c.status == sc.ST_OK:
+        c.i_ua, c.t_us = best_pulse(c, e, round(q / c.t_us), c.t_us)
 
 
 @dataclass
@@ -175,19 +197,8 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0):
         mq = (i * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan")
         rows.append((k, i, t, rp, mq, c.status))
         c.update(rp)
-        if mode == ORACLE and c.i_ua > 0:  # the law solved on the true skin, then the core's bounds
-            paper = (c.i_ua, c.t_us, c.status)
-            q = oracle_charge(c, e, i * t)
-            c._from_q(min(int(q * 16), 2**29))
-            if c.status & sc.ST_T_MAX:  # the ceiling keeps the line: solve for I at t_max
-                i_line = oracle_current_at(c, e, c.t_max_us, c.i_ua)
-                if (c.i_min_ua <= i_line <= c.i_max_ua and i_line * c.t_max_us <= c.q_max_pc
-                        and _rp_on(e, i_line, c.t_max_us) <= sc.RP_MAX_OHM):
-                    c.i_ua, c.t_us = best_pulse(c, e, round(i_line), c.t_max_us, ceiling=True)
-                else:  # no pulse within the limits is on the line: the paper's step
-                    c.i_ua, c.t_us, c.status = paper
-            elif c.status == sc.ST_OK:  # and the integer pulse nearest the line on that skin
-                c.i_ua, c.t_us = best_pulse(c, e, round(q / c.t_us), c.t_us)
+        if mode == ORACLE and c.i_ua > 0:
+            oracle_pulse(c, e, i * t)
     return np.array(rows, dtype=float), c.mq_target_fc_per_ohm, c.me_ua2ms * 1000
 
 

@@ -39,12 +39,11 @@ ME = I0 * I0 * T0
 AREA = 5.6
 
 
-def rp_ohm(i_ua, t_us, beta, c, rs, rho_ref, h):
-    """The electrode model of firmware/sim_electrode.py (no memory), in ohm."""
-    j = i_ua / 1000.0 / AREA
-    rho = h * rho_ref * (j / 0.2) ** (-beta)
-    r = rho / AREA
-    return 1000.0 * (rs + r * (1.0 - math.exp(-t_us / (r * c * AREA))))
+def skin(beta, c, rs, rho_ref, h=1.0):
+    """An electrode of firmware/sim_electrode.py with these parameters."""
+    e = bench.Electrode(area_cm2=AREA, rs_kohm=rs, rho_ref=rho_ref, beta=beta, c_nf_cm2=c)
+    e.h = h
+    return e
 
 
 def _solve(f, lo, hi):
@@ -76,16 +75,16 @@ def main():
     rng = np.random.default_rng(a.seed)
     skins = []
     for beta, c, rs in zip(rng.uniform(0.5, 0.9, a.skins), rng.uniform(2, 6, a.skins), rng.uniform(0.3, 1.5, a.skins)):
-        rho = _solve(lambda x: rp_ohm(I0, T0, beta, c, rs, x, 1.0) - cal_ohm, 20, 2000)
+        rho = _solve(lambda x: bench._rp_on(skin(beta, c, rs, x), I0, T0) - cal_ohm, 20, 2000)
         if rho is None:
             continue
-        h = _solve(lambda x: rp_ohm(I0, T0, beta, c, rs, rho, x) - pulse0_ohm, 0.01, 1.0)
+        h = _solve(lambda x: bench._rp_on(skin(beta, c, rs, rho, x), I0, T0) - pulse0_ohm, 0.01, 1.0)
         if h is None:
             continue
-        p = (beta, c, rs, rho, h)
+        p = skin(beta, c, rs, rho, h)
 
         def on_curve(q, p=p):  # Rp of the mE-curve pulse of charge q
-            return rp_ohm(ME / q, q * q / ME, *p)
+            return bench._rp_on(p, ME / q, q * q / ME)
 
         def err(q, on_curve=on_curve):  # mQ(q) - target, pC/ohm
             return (q - bench.Y) / (on_curve(q) - bench.X) - mq

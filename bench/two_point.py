@@ -42,7 +42,7 @@ def pulse2_errors(i0, event):
     c = sc.Controller(*bench.LIMITS)
     c.calibrate(i0, 1000, round(e.rp_kohm(i0, 1000) * 1000), bench.X, bench.Y)
     c.set_mode(sc.MODE_FAST)
-    mq = (i0 * 1000 - bench.Y) / (c.rp0_ohm - bench.X)
+    mq = bench.mq_of(c)
     me = i0 * i0 * 1000
     pts = []
     for k in range(event.pulse + 2):

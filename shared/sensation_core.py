@@ -174,6 +174,11 @@ def _frac12(x, den):
     return q
 
 
+def _least_elastic(x):
+    """x * FAST_ELASTICITY_Q12 / 2**12, floored, for 0 <= x < 2**30 (split: < 2**30)."""
+    return (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
+
+
 def _check(name, v, lo, hi):
     if not (lo <= v <= hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
@@ -337,8 +342,7 @@ class Controller:
         q_k = self.i_ua * self.t_us  # the pulse this Rp was measured on
         if mode < MODE_AKHTAR:
             return self._fixed_current(mode, rp_ohm)
-        # Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max
-        qf = self._y16 + _muldiv(self._a, d, self._d0, 4, self._pcap)
+        qf = self._line(rp_ohm)
         if qf <= 0:
             self._fok = 0
             return self.stop(ST_Q_NONPOS)
@@ -351,6 +355,16 @@ class Controller:
         self._frp = rp_ohm
         self._fok = 1 if (st == ST_OK and q_k > 0) else 0
         return st
+
+    def _line(self, rp_ohm):
+        """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
+        return self._y16 + _muldiv(self._a, rp_ohm - self.x_star_ohm, self._d0, 4, self._pcap)
+
+    def _measured(self, i_ua, t_us, status):
+        """Put back the measured pulse (_from_q reads it) before another proposal."""
+        self.i_ua = i_ua
+        self.t_us = t_us
+        self.status = status
 
     def _fast_pulse(self, qf, q_k, rp_ohm):
         """MODE_FAST's next pulse from the paper's step qf (1/16 pC): the drift
@@ -373,9 +387,7 @@ class Controller:
                     if self.fast_jumps < _SAT30:  # a counter must never become a long int
                         self.fast_jumps += 1
                     return st
-                self.i_ua = i_k
-                self.t_us = t_k
-                self.status = s_k
+                self._measured(i_k, t_k, s_k)
         st = self._from_q(qf)
         i = self.i_ua
         if st == ST_T_MAX and not ceiling and i < i_k:
@@ -386,13 +398,10 @@ class Controller:
                 dr = _muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
             else:
                 dr = _muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
-            dr = (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
-            rp2 = rp_ohm + dr
+            rp2 = rp_ohm + _least_elastic(dr)
             if rp2 <= RP_MAX_OHM:
-                self.i_ua = i_k
-                self.t_us = t_k
-                self.status = s_k
-                st = self._from_q(self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap))
+                self._measured(i_k, t_k, s_k)
+                st = self._from_q(self._line(rp2))
         return st
 
     def _drift(self, qf, q_k, rp_ohm):
@@ -407,8 +416,7 @@ class Controller:
             adq = dq if dq >= 0 else -dq
             if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
                 f = _frac12(adq, q_k)  # |dQ|/Q in Q.12, < 128
-                e = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)  # Rp |dQ| / Q
-                e = (e * FAST_ELASTICITY_Q12) >> 12
+                e = _least_elastic((rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12))  # e Rp |dQ| / Q
                 drift = rp_ohm - self._frp - (e if dq >= 0 else -e)
         prev = self._fdr
         self._fdr = drift
@@ -422,7 +430,7 @@ class Controller:
         rp2 = rp_ohm + d
         if rp2 < RP_MIN_OHM:
             return qf
-        return self._y16 + _muldiv(self._a, rp2 - self.x_star_ohm, self._d0, 4, self._pcap)
+        return self._line(rp2)
 
     def _fixed_current(self, mode, rp_ohm):
         """The baseline laws: I = I0; T from the mode's law, then the bounds."""
