@@ -37,8 +37,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path[:0] = [str(ROOT / "shared"), str(ROOT / "firmware")]
+sys.path[:0] = [str(ROOT / "shared"), str(ROOT / "firmware"), str(ROOT)]
 import sensation_core as sc  # noqa: E402
+from host import skin  # noqa: E402
 from sim_electrode import Electrode  # noqa: E402
 
 X, Y = -1670, 186000
@@ -46,7 +47,8 @@ LIMITS = (100, 10000, 50, 8000, 10_000_000)
 MODE_NAMES = {sc.MODE_OPEN_LOOP: "open", sc.MODE_CONSTANT_CHARGE: "charge", sc.MODE_CONSTANT_ENERGY: "energy",
               sc.MODE_PULSE_WIDTH_LINEAR: "pwlinear", sc.MODE_AKHTAR: "akhtar", sc.MODE_FAST: "fast"}
 ORACLE = -1  # not a core mode: the bench's reference for what is physically possible
-ALL_NAMES = {**MODE_NAMES, ORACLE: "oracle"}
+FAST_NO_MODEL = -2  # MODE_FAST without a skin model (set_skin not called)
+ALL_NAMES = {**MODE_NAMES, FAST_NO_MODEL: "fast, no model", ORACLE: "oracle"}
 
 
 def _rp_on(e, i_ua, t_us):
@@ -170,7 +172,10 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0):
     c = sc.Controller(*LIMITS)
     rp0 = round(e.rp_kohm(i0, t0) * 1000)
     c.calibrate(i0, t0, rp0, X, Y)
-    c.set_mode(mode if mode != ORACLE else sc.MODE_AKHTAR)
+    c.set_mode(mode if mode >= 0 else sc.MODE_FAST if mode == FAST_NO_MODEL else sc.MODE_AKHTAR)
+    if mode == sc.MODE_FAST:  # the skin model, fitted to the calibration's pulses (Exp. 1's durations)
+        pulses = [(i, t, round(_rp_on(e, i, t) * (1 + noise * rng.normal()))) for i, t in skin.sweep(i0, t0)]
+        c.set_skin(*skin.fit(pulses).args())
     h_target, tau = e.h, 0.0
     rows = []
     ev = {x.pulse: x for x in events}

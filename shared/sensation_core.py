@@ -60,6 +60,14 @@ _MQ_CAP = const(0x1FFFFFFF)
 # MODE_FAST's prior: the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE
 # curve, in Q.12 (0.45: the current exponent beta >= 0.5 less the series resistance)
 FAST_ELASTICITY_Q12 = const(1843)
+# a jump on the skin model raises the charge by at most 2**this paper steps
+FAST_MODEL_RAISE_LOG2 = const(4)
+# the skin model's accepted ranges (Controller.set_skin)
+SKIN_RS_MAX_OHM = const(5000)
+SKIN_BETA_MIN_Q16 = const(6554)  # 0.1
+SKIN_BETA_MAX_Q16 = const(98303)  # < 1.5
+SKIN_CP_MIN_PF = const(100)
+SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 
 
 def _muldiv(a, b, c, fbits, cap):
@@ -179,6 +187,87 @@ def _least_elastic(x):
     return (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
 
 
+# ---- MODE_FAST's electrode model (optional: Controller.set_skin) ----
+# Rp(I, T) = Rs + R(I) (1 - exp(-T / (R(I) Cp))), R(I) = S (I / 1 mA)**-beta: the
+# electrode of docs/simulation.md. Logarithms are log2 in Q.16 ("l" names).
+_LOG_TAB = (  # round(2**16 log2(1 + k/64)), k = 0..65
+    0, 1466, 2909, 4331, 5732, 7112, 8473, 9814, 11136, 12440, 13727, 14996, 16248, 17484, 18704, 19909,
+    21098, 22272, 23433, 24579, 25711, 26830, 27936, 29029, 30109, 31178, 32234, 33279, 34312, 35334, 36346,
+    37346, 38336, 39316, 40286, 41246, 42196, 43137, 44068, 44990, 45904, 46809, 47705, 48593, 49472, 50344,
+    51207, 52063, 52911, 53751, 54584, 55410, 56229, 57040, 57845, 58643, 59434, 60219, 60997, 61769, 62534,
+    63294, 64047, 64794, 65536, 66272,
+)
+_EXP_TAB = (  # round(2**22 2**(k/64)), k = 0..65
+    4194304, 4239977, 4286147, 4332820, 4380002, 4427697, 4475911, 4524651, 4573921, 4623728, 4674077,
+    4724974, 4776426, 4828438, 4881016, 4934167, 4987896, 5042211, 5097117, 5152621, 5208729, 5265449,
+    5322786, 5380747, 5439339, 5498570, 5558445, 5618973, 5680159, 5742012, 5804539, 5867746, 5931642,
+    5996233, 6061528, 6127533, 6194258, 6261709, 6329894, 6398822, 6468501, 6538938, 6610143, 6682122,
+    6754886, 6828442, 6902799, 6977965, 7053950, 7130763, 7208412, 7286906, 7366255, 7446469, 7527555,
+    7609525, 7692387, 7776152, 7860829, 7946428, 8032959, 8120432, 8208857, 8298246, 8388608, 8479954,
+)
+_L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
+_L_E = const(94548)  # log2(e)
+_L_1MA = const(653118)  # log2(1000 uA): the model's reference current
+_L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
+_L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
+_NOROOT = const(-0x3FFFFFFF)
+_K_ANCHOR = const(0)  # _g kinds: log2 S that reads the stored pulse (p = log2 Cp)
+_K_PEEL = const(1)  # contact scale that reads the stored pulse (p unused)
+_K_LAW = const(2)  # the law on the mE curve, x = log2 Q
+_K_CEIL = const(3)  # the line at T = t_max, x = log2 I
+_K_TWO = const(4)  # log2 Cp for which both stored pulses read right
+_K_ANCHOR0 = const(5)  # log2 S that reads the pulse before (p = log2 Cp)
+
+
+def _log2q(x):
+    """log2(x) in Q.16 for an integer 1 <= x < 2**30 (error < 1 / 2**16: quadratic
+    interpolation in a 64-cell table)."""
+    n = 22
+    while x >= 0x800000:
+        x >>= 1
+        n += 1
+    while x < 0x400000:
+        x <<= 1
+        n -= 1
+    k = (x >> 16) - 64
+    a = _LOG_TAB[k]
+    b = _LOG_TAB[k + 1]
+    u = x & 0xFFFF
+    v = u >> 8
+    return (n << 16) + a + (((b - a) * u + 0x8000) >> 16) + ((v * (v - 256) * (_LOG_TAB[k + 2] - b - b + a) + 0x10000) >> 17)
+
+
+def _exp2q(lx):
+    """round(2**(lx / 2**16)) for lx < 29 * 2**16 (relative error < 1e-6 before the
+    rounding: quadratic interpolation in a 64-cell table)."""
+    n = lx >> 16
+    f = lx & 0xFFFF
+    k = f >> 10
+    a = _EXP_TAB[k]
+    b = _EXP_TAB[k + 1]
+    u = f & 0x3FF
+    v = u >> 2
+    m = a + (((b - a) * u + 512) >> 10) + ((v * (v - 256) * (_EXP_TAB[k + 2] - b - b + a) + 0x10000) >> 17)  # Q.22
+    if n >= 22:
+        return m << (n - 22)
+    if n < -2:
+        return 0
+    s = 22 - n
+    return (m + (1 << (s - 1))) >> s
+
+
+def _mul_q16(x, b):
+    """x * b / 2**16 rounded towards zero, |x| < 2**21, 0 <= b < 2**17 (split: < 2**30)."""
+    a = -x if x < 0 else x
+    y = (((a >> 10) * b) >> 6) + (((a & 0x3FF) * b) >> 16)
+    return -y if x < 0 else y
+
+
+def _half(f):
+    """f / 2 keeping its sign (Illinois' down-weighting of a retained end)."""
+    return f >> 1 if f > 1 or f < -1 else f
+
+
 def _check(name, v, lo, hi):
     if not (lo <= v <= hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
@@ -231,6 +320,28 @@ class Controller:
         self._fok = 0  # 1: that pulse was a clean step (no fault, no bound)
         self._fdr = 0  # MODE_FAST: Rp's last change not explained by our own step (ohm)
         self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
+        # MODE_FAST's skin model (set_skin; 0 = none) and its state, logs in Q.16
+        self.skin_rs_ohm = 0
+        self.skin_beta_q16 = 0
+        self.skin_cp_pf = 0
+        self.model_jumps = 0  # telemetry/diagnostics: jumps solved on the skin model
+        self._mon = 0  # 1: a skin model is set
+        self._mlc0 = 0  # log2 Cp (pF) as set
+        self._mlc = 0  # log2 Cp now (a two-pulse fit may move it)
+        self._mls = 0  # log2 S (ohm at 1 mA), anchored on the last model jump
+        self._mj = 0  # 1: the pulse just measured was a model jump
+        self._mpred = 0  # the Rp the model predicted for it (ohm)
+        self._lme = 0  # log2 mE (uA^2 us); log2 t_max is self._ltmax (set_limits)
+        self._p0i = 0  # the pulse measured before the last one and its Rp (raw)
+        self._p0t = 0
+        self._p0rp = 0
+        self._p1li = 0  # the pulse just measured (logs) and its Rp
+        self._p1lt = 0
+        self._p1rp = 0
+        self._g0li = 0  # the pulse before it (logs), its Rp, and log2 S there
+        self._g0lt = 0
+        self._g0rp = 0
+        self._g0ls = 0
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -245,6 +356,7 @@ class Controller:
         self.t_min_us = t_min_us
         self.t_max_us = t_max_us
         self.q_max_pc = q_max_pc
+        self._ltmax = _log2q(t_max_us)
         self.calibrated = False
         self.i_ua = 0
         self.t_us = 0
@@ -276,6 +388,9 @@ class Controller:
         self._y16 = y_star_pc << 4
         self._qcap = self.q_max_pc << 4
         self._pcap = (self.q_max_pc - y_star_pc) << 4
+        self._lme = (_log2q(i0_ua) << 1) + _log2q(t0_us)
+        self._mj = 0
+        self._p0rp = 0
         self.i0_ua = i0_ua
         self.t0_us = t0_us
         self.rp0_ohm = rp0_ohm
@@ -299,7 +414,28 @@ class Controller:
         if mode != self.mode:
             self._fok = 0
             self._fdr = 0
+            self._mj = 0
+            self._p0rp = 0
         self.mode = mode
+
+    def set_skin(self, rs_ohm, beta_q16, cp_pf):
+        """MODE_FAST's electrode model (docs/controller.md): series resistance Rs (ohm),
+        current exponent beta (Q.16) and capacitance Cp (pF) of the pair, as fitted to
+        the calibration pulses (host/skin.py). All three 0: no model. ValueError
+        (nothing changed) when out of range."""
+        if rs_ohm == 0 and beta_q16 == 0 and cp_pf == 0:
+            self._mon = 0
+        else:
+            _check("rs_ohm", rs_ohm, 0, SKIN_RS_MAX_OHM)
+            _check("beta_q16", beta_q16, SKIN_BETA_MIN_Q16, SKIN_BETA_MAX_Q16)
+            _check("cp_pf", cp_pf, SKIN_CP_MIN_PF, SKIN_CP_MAX_PF)
+            self._mon = 1
+            self._mlc0 = _log2q(cp_pf)
+            self._mlc = self._mlc0
+        self.skin_rs_ohm = rs_ohm
+        self.skin_beta_q16 = beta_q16
+        self.skin_cp_pf = cp_pf
+        self._mj = 0
 
     def delivered(self, i_ua, t_us):
         """Tell the controller the pulse actually delivered, when it differs from
@@ -312,6 +448,8 @@ class Controller:
         """Next pulse: none (i_ua = t_us = 0), with the given fault status."""
         self._fok = 0
         self._fdr = 0
+        self._mj = 0
+        self._p0rp = 0
         self.i_ua = 0
         self.t_us = 0
         self.status = status
@@ -375,11 +513,26 @@ class Controller:
         t_k = self.t_us
         s_k = self.status
         ceiling = s_k & ST_T_MAX
-        qf = self._drift(qf, q_k, rp_ohm)
+        rp_at = self._drift(q_k, rp_ohm)
+        if rp_at != rp_ohm:
+            qf = self._line(rp_at)
+        p0i = self._p0i  # the pulse before (the skin model's two-pulse fit)
+        p0t = self._p0t
+        p0rp = self._p0rp
+        self._p0i = i_k
+        self._p0t = t_k
+        self._p0rp = rp_ohm
+        jumped = self._mj
+        self._mj = 0
         # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
         # where I and T are split for the charge, 1/2 us): the paper's step
         dq = qf - (q_k << 4)  # 1/16 pC
         if (dq if dq >= 0 else -dq) >= (i_k + (0 if ceiling else t_k)) << 3:
+            if self._mon and q_k > 0:
+                st = self._model_pulse(qf, q_k, rp_at, i_k, t_k, jumped, p0i, p0t, p0rp)
+                if st >= 0:
+                    return st
+                self._measured(i_k, t_k, s_k)
             q_new = self._fast(qf, q_k, rp_ohm)
             if q_new != qf:
                 st = self._from_q(q_new)
@@ -404,12 +557,13 @@ class Controller:
                 st = self._from_q(self._line(rp2))
         return st
 
-    def _drift(self, qf, q_k, rp_ohm):
+    def _drift(self, q_k, rp_ohm):
         """MODE_FAST under a falling drift (sweat, gel soaking in): Rp's change since the
         last pulse less what our own step explains (with the least elasticity) is the
         skin moving; when it has fallen two pulses running, the law is applied to Rp
-        one pulse ahead (the smaller of the two falls, at most Rp/16). Only falls:
-        a rising drift would raise the charge on a prediction."""
+        one pulse ahead (the smaller of the two falls, at most Rp/16), which this
+        returns (else rp_ohm). Only falls: a rising drift would raise the charge on a
+        prediction."""
         drift = 0
         if self._fok and q_k > 0:
             dq = q_k - self._fq
@@ -421,16 +575,225 @@ class Controller:
         prev = self._fdr
         self._fdr = drift
         if drift >= 0 or prev >= 0:
-            return qf
+            return rp_ohm
         d = drift if drift > prev else prev  # the smaller fall
         if -d < rp_ohm >> 9:  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
-            return qf
+            return rp_ohm
         if -d > rp_ohm >> 4:
             d = -(rp_ohm >> 4)
         rp2 = rp_ohm + d
         if rp2 < RP_MIN_OHM:
-            return qf
-        return self._line(rp2)
+            return rp_ohm
+        return rp2
+
+    # ---- MODE_FAST's skin model (docs/controller.md, "The skin model") ----
+
+    def _rp_model(self, ls, lc, li, lt):
+        """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
+        pulse with log2 I = li, log2 T = lt."""
+        lr = ls - _mul_q16(li - _L_1MA, self.skin_beta_q16)  # log2 R(I)
+        if lr > _L_R_MAX:
+            return 0x200000
+        lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+            u = 0x8000
+        elif lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+            z = _exp2q(lz + 0xE0000)  # Q.14, < 2**13
+            v = 16384 - z // 5
+            v = 16384 - ((z * v) >> 14) // 4
+            v = 16384 - ((z * v) >> 14) // 3
+            v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
+            rz = _exp2q(lt - lc + _L_1E6)  # R z = T / Cp (ohm), < R / 2 < 2**19
+            return self.skin_rs_ohm + (((rz >> 10) * v) >> 4) + (((rz & 0x3FF) * v) >> 14)
+        else:
+            zq = _exp2q(lz + 0x100000)  # z in Q.16, < 12 * 2**16
+            lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
+            u = 0x8000 - _exp2q(lw + 0xF0000)  # 1 - e^-z in Q.15
+        r = _exp2q(lr)
+        return self.skin_rs_ohm + (((r >> 10) * u) >> 5) + (((r & 0x3FF) * u) >> 15)
+
+    def _g(self, kind, x, p):
+        """The function of x whose sign change _root finds (kinds _K_*)."""
+        if kind == _K_ANCHOR:  # x = log2 S, p = log2 Cp: misfit at the pulse just measured
+            return self._rp_model(x, p, self._p1li, self._p1lt) - self._p1rp
+        if kind == _K_ANCHOR0:  # the same at the pulse before it (_g0*)
+            return self._rp_model(x, p, self._g0li, self._g0lt) - self._g0rp
+        if kind == _K_PEEL:  # x = log2 contact from the skin before: S ~ a**(beta - 1), Cp ~ a
+            b = self.skin_beta_q16 - 0x10000
+            ls = self._g0ls + (_mul_q16(x, b) if b >= 0 else -_mul_q16(x, -b))
+            return self._rp_model(ls, self._mlc + x, self._p1li, self._p1lt) - self._p1rp
+        if kind == _K_LAW:  # x = log2 Q on the mE curve: L(Rp(Q)) - Q, 1/16 pC
+            r = self._rp_model(self._mls, self._mlc, self._lme - x, (x << 1) - self._lme)
+            if r > RP_MAX_OHM:
+                r = RP_MAX_OHM
+            return self._line(r) - _exp2q(x + 0x40000)
+        if kind == _K_CEIL:  # x = log2 I at T = t_max: L(Rp) - I t_max, 1/16 pC
+            r = self._rp_model(self._mls, self._mlc, x, self._ltmax)
+            if r > RP_MAX_OHM:
+                r = RP_MAX_OHM
+            return self._line(r) - _exp2q(x + self._ltmax + 0x40000)
+        # _K_TWO: x = log2 Cp; S from the pulse before, then the misfit at the last one
+        ls = self._anchor(_K_ANCHOR0, self._g0li, self._g0rp, x)
+        if ls == _NOROOT:
+            return _NOROOT
+        return self._rp_model(ls, x, self._p1li, self._p1lt) - self._p1rp
+
+    def _root(self, kind, a, b, p):
+        """x in [a, b] where _g(kind, x, p) changes sign (Illinois' regula falsi), to
+        1/2**16 (1/2**10 for _K_TWO); _NOROOT if the ends have one sign or _g fails."""
+        fa = self._g(kind, a, p)
+        fb = self._g(kind, b, p)
+        if fa == _NOROOT or fb == _NOROOT or (fa > 0) == (fb > 0):
+            return _NOROOT if fa != 0 and fb != 0 else (a if fa == 0 else b)
+        tol = 4 if kind == _K_TWO else 1
+        side = 0
+        n = 0
+        while b - a > tol and n < 40:
+            n += 1
+            w = b - a
+            num = fa if fa > 0 else -fa
+            den = num + (fb if fb > 0 else -fb)
+            while den >= 0x40000:
+                den >>= 1
+                num >>= 1
+            if den >= 256 and w <= 0x40000:
+                x = a + _muldiv(num, w, den, 0, _MQ_CAP)
+            else:
+                x = a + (w >> 1)
+            if x <= a:
+                x = a + 1
+            elif x >= b:
+                x = b - 1
+            fx = self._g(kind, x, p)
+            if fx == _NOROOT:
+                return _NOROOT
+            if fx == 0:
+                return x
+            if (fx > 0) == (fa > 0):
+                a = x
+                fa = fx
+                if side < 0:
+                    fb = _half(fb)
+                side = -1
+            else:
+                b = x
+                fb = fx
+                if side > 0:
+                    fa = _half(fa)
+                side = 1
+        if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+            return a
+        return b
+
+    def _anchor(self, kind, li, rp, lc):
+        """log2 S with which the model (log2 Cp = lc) reads rp on the pulse of log2 I = li
+        (kind _K_ANCHOR: the pulse just measured, _K_ANCHOR0: the one before), or _NOROOT.
+        R(I) >= Rp - Rs, so S is searched from there up to 16 times more."""
+        d = rp - self.skin_rs_ohm
+        if d < 16:
+            return _NOROOT
+        lo = _log2q(d) + _mul_q16(li - _L_1MA, self.skin_beta_q16)
+        return self._root(kind, lo, lo + 0x40000, lc)
+
+    def _model_q(self, lq_k):
+        """The law's charge (1/16 pC) on the model skin: on the mE curve up to t_max
+        (searched from Q_k/4 to 4 Q_k), else on the line at t_max; _NOROOT if none."""
+        lq_max = _log2q(self.q_max_pc)
+        hi = lq_k + 0x20000
+        if hi > lq_max:
+            hi = lq_max
+        lq_t = (self._lme + self._ltmax) >> 1  # the mE curve's charge at t_max
+        if hi >= lq_t:
+            hi = lq_t
+            if self._g(_K_LAW, hi, 0) > 0:  # more than the curve gives at t_max
+                lo = _log2q(self.i_min_ua)
+                hi = lq_max - self._ltmax
+                x = _log2q(self.i_max_ua)
+                if x < hi:
+                    hi = x
+                li = self._root(_K_CEIL, lo, hi, 0) if hi > lo else _NOROOT
+                if li == _NOROOT:
+                    return _NOROOT
+                return _exp2q(li + self._ltmax + 0x40000)
+        lq = self._root(_K_LAW, lq_k - 0x20000, hi, 0)
+        if lq == _NOROOT:
+            return _NOROOT
+        return _exp2q(lq + 0x40000)
+
+    def _model_pulse(self, qf, q_k, rp_ohm, i_k, t_k, jumped, p0i, p0t, p0rp):
+        """MODE_FAST's jump with the skin model: the law solved on the model anchored
+        to the pulse just measured (Rp = rp_ohm, or the drift's prediction). After a
+        model jump that missed its prediction and moved I, Cp is refitted so that the
+        model reads both the jump and the pulse before it (a change of contact moves
+        Cp, one of hydration does not). On a fresh rise, the contact hypothesis is
+        also solved and the smaller charge taken. Returns the status, or -1 when the
+        model has no answer (the caller goes on without it)."""
+        self._p1li = _log2q(i_k)
+        self._p1lt = _log2q(t_k)
+        self._p1rp = rp_ohm
+        if p0rp > 0:
+            self._g0li = _log2q(p0i)
+            self._g0lt = _log2q(p0t)
+            self._g0rp = p0rp
+        if jumped and p0rp > 0:
+            miss = rp_ohm - self._mpred
+            dl = self._p1li - self._g0li
+            if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
+                lc0 = self._mlc0
+                hi = lc0 + 0x20000
+                rs = self.skin_rs_ohm
+                if p0rp - rs < 16 or rp_ohm - rs < 16:
+                    return -1
+                x = self._g0lt + _L_1E6 - _log2q(p0rp - rs) - 0x2000  # the pulse charged Cp to Rp
+                if x < hi:
+                    hi = x
+                x = self._p1lt + _L_1E6 - _log2q(rp_ohm - rs) - 0x2000
+                if x < hi:
+                    hi = x
+                if hi > lc0 - 0x20000:
+                    lc = self._root(_K_TWO, lc0 - 0x20000, hi, 0)
+                    if lc != _NOROOT:
+                        self._mlc = lc
+        ls = self._anchor(_K_ANCHOR, self._p1li, rp_ohm, self._mlc)
+        if ls == _NOROOT:
+            return -1
+        self._mls = ls
+        lq_k = _log2q(q_k)
+        q16 = self._model_q(lq_k)
+        if q16 == _NOROOT:
+            return -1
+        if q16 > q_k << 4 and not jumped and p0rp > 0:
+            # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
+            # charge is the smaller one; take it, the next pulse tells them apart
+            ls0 = self._anchor(_K_ANCHOR0, self._g0li, p0rp, self._mlc)
+            if ls0 != _NOROOT:
+                self._g0ls = ls0
+                la = self._root(_K_PEEL, -0x30000, 0x10000, 0)
+                if la != _NOROOT:
+                    b = self.skin_beta_q16 - 0x10000
+                    ls1 = self._mls
+                    lc1 = self._mlc
+                    self._mls = ls0 + (_mul_q16(la, b) if b >= 0 else -_mul_q16(la, -b))
+                    self._mlc = lc1 + la
+                    q2 = self._model_q(lq_k)
+                    if q2 != _NOROOT and q2 < q16:
+                        q16 = q2
+                    else:
+                        self._mls = ls1
+                        self._mlc = lc1
+        # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
+        base = q_k << 4
+        step = qf - base
+        if step == 0 or (q16 > base) != (step > 0):
+            return -1
+        if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
+            q16 = base + (step << FAST_MODEL_RAISE_LOG2)
+        st = self._from_q(q16)
+        self._mpred = self._rp_model(self._mls, self._mlc, _log2q(self.i_ua), _log2q(self.t_us))
+        self._mj = 1
+        if self.model_jumps < _SAT30:
+            self.model_jumps += 1
+        return st
 
     def _fixed_current(self, mode, rp_ohm):
         """The baseline laws: I = I0; T from the mode's law, then the bounds."""

@@ -1,0 +1,83 @@
+"""The electrode model MODE_FAST may use (Controller.set_skin), fitted to pulses
+measured on one person at one site: Rp(I, T) = Rs + R(I) (1 - exp(-T / (R(I) Cp))),
+R(I) = S (I / 1 mA)**-beta (docs/simulation.md; docs/controller.md, "The skin model").
+
+The pulses are the calibration's own: Exp. 1's matched points (the paper used 11,
+T = 200...700 us) or `sweep()` along the mE curve through the operating point.
+Units: current uA, duration us, resistance ohm, capacitance pF.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+import sensation_core as sc
+
+SWEEP_T_US = tuple(range(200, 701, 50))  # the paper's Exp. 1 durations
+
+
+class SkinFitError(ValueError):
+    """Pulses that cannot determine the model; the message says why."""
+
+
+@dataclass
+class SkinModel:
+    rs_ohm: int
+    beta_q16: int
+    cp_pf: int
+    s_ohm: float  # R at 1 mA on the fitted skin (for reference: the device re-anchors it)
+    worst_misfit: float  # largest |model - measured| / measured over the pulses
+
+    @property
+    def beta(self) -> float:
+        return self.beta_q16 / 65536
+
+    def args(self) -> tuple[int, int, int]:
+        """(rs_ohm, beta_q16, cp_pf) for Controller.set_skin / the device command."""
+        return self.rs_ohm, self.beta_q16, self.cp_pf
+
+
+def rp_ohm(i_ua, t_us, rs_ohm, beta, s_ohm, cp_pf):
+    """The model's Rp (float, ohm); numpy arrays welcome."""
+    r = s_ohm * (np.asarray(i_ua, float) / 1000.0) ** (-beta)
+    return rs_ohm + r * (1.0 - np.exp(-np.asarray(t_us, float) * 1e6 / (r * cp_pf)))
+
+
+def sweep(i0_ua: int, t0_us: int) -> list[tuple[int, int]]:
+    """Pulses of the same mE as (i0, t0) at the Exp. 1 durations, and (i0, t0) itself."""
+    me = i0_ua * i0_ua * t0_us
+    return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in SWEEP_T_US if t != t0_us]
+
+
+def fit(pulses) -> SkinModel:
+    """Least-squares fit (relative residuals) of Rs, beta, S, Cp to (i_ua, t_us, rp_ohm)
+    rows. Needs at least 5 pulses with at least 3 different durations."""
+    a = np.asarray(list(pulses), float)
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) < 5:
+        raise SkinFitError(f"need at least 5 pulses (i_ua, t_us, rp_ohm), got {len(a)}")
+    if len(set(a[:, 1])) < 3:
+        raise SkinFitError("need pulses of at least 3 different durations")
+    if (a <= 0).any():
+        raise SkinFitError("every current, duration and Rp must be > 0")
+    i, t, r = a.T
+
+    def res(p):
+        return rp_ohm(i, t, p[0], p[1], math.exp(p[2]), math.exp(p[3])) / r - 1.0
+
+    lo = [0.0, sc.SKIN_BETA_MIN_Q16 / 65536, math.log(100.0), math.log(sc.SKIN_CP_MIN_PF)]
+    hi = [sc.SKIN_RS_MAX_OHM, sc.SKIN_BETA_MAX_Q16 / 65536, math.log(1e7), math.log(sc.SKIN_CP_MAX_PF)]
+    best = None
+    for beta0 in (0.5, 0.75):
+        for cp0 in (3000.0, 15000.0, 60000.0):
+            x0 = [min(500.0, 0.5 * r.min()), beta0, math.log(float(np.median(r))), math.log(cp0)]
+            f = least_squares(res, x0, bounds=(lo, hi), x_scale=[500.0, 0.1, 0.5, 0.5])
+            if best is None or f.cost < best.cost:
+                best = f
+    rs, beta, ls, lc = best.x
+    m = SkinModel(round(rs), round(beta * 65536), round(math.exp(lc)), math.exp(ls), 0.0)
+    m.worst_misfit = float(np.max(np.abs(rp_ohm(i, t, m.rs_ohm, m.beta, m.s_ohm, m.cp_pf) / r - 1.0)))
+    return m
