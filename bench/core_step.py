@@ -1,4 +1,5 @@
-"""ns per Controller.update(): MicroPython VM (.mpy), CPython, and a naive float law in MicroPython.
+"""ns per Controller.update(): MicroPython VM (.mpy), CPython, and a naive float law in MicroPython;
+and MODE_FAST with a skin model in MicroPython (mean and worst single update).
 
 Run: .venv/bin/python bench/core_step.py [--n 20000]
 Prints a markdown table (paste into docs/performance.md with this command).
@@ -52,6 +53,22 @@ def bench_float(rp_list):
         c.update(rp)
     return time.ticks_diff(time.ticks_us(), t)
 
+def bench_model(rp_list):
+    # MODE_FAST with a skin model: on this walk nearly every update is a model jump
+    c = sc.Controller(500, 20000, 50, 2000, 20000000)
+    c.calibrate(1000, 1000, 30000, -1670, 186000)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(500, 36045, 14000)
+    worst = 0
+    t = time.ticks_us()
+    for rp in rp_list:
+        t1 = time.ticks_us()
+        c.update(rp)
+        d = time.ticks_diff(time.ticks_us(), t1)
+        if d > worst:
+            worst = d
+    return time.ticks_diff(time.ticks_us(), t), worst, c.model_jumps
+
 def bench_empty(rp_list):
     t = time.ticks_us()
     for rp in rp_list:
@@ -65,7 +82,12 @@ for _ in range(5):
     best[0] = min(best[0], bench_core(r))
     best[1] = min(best[1], bench_float(r))
     best[2] = min(best[2], bench_empty(r))
-print(best[0], best[1], best[2])
+m = bench_model(r)
+for _ in range(4):
+    m2 = bench_model(r)
+    if m2[0] < m[0]:
+        m = m2
+print(best[0], best[1], best[2], m[0], m[1], m[2])
 """
 
 
@@ -78,7 +100,7 @@ def main():
         Path(d, "b.py").write_text(MP_SCRIPT.replace("NN_PLACEHOLDER", str(n)))
         env = dict(os.environ, MICROPYPATH=d)
         out = subprocess.run([str(BIN / "micropython"), f"{d}/b.py"], capture_output=True, text=True, env=env, check=True)
-    core_us, float_us, empty_us = map(int, out.stdout.split())
+    core_us, float_us, empty_us, model_us, model_worst_us, model_jumps = map(int, out.stdout.split())
     c = sc.Controller(500, 20000, 50, 2000, 20000000)
     c.calibrate(1000, 1000, 30000, -1670, 186000)
     rps = [3000 + (k * 7919) % 120000 for k in range(n)]
@@ -94,6 +116,8 @@ def main():
     print(f"| sensation_core (.mpy) in MicroPython unix VM | {(core_us - empty_us) * 1000 / n:.0f} |")
     print(f"| naive float law in MicroPython unix VM | {(float_us - empty_us) * 1000 / n:.0f} |")
     print(f"| sensation_core in CPython {platform.python_version()} | {cp:.0f} |")
+    print(f"| MODE_FAST with a skin model (.mpy) in MicroPython unix VM: mean / worst single update | "
+          f"{model_us * 1000 / n:.0f} / {model_worst_us * 1000:.0f} ({model_jumps} of {n} updates were model jumps) |")
     print(f"(loop overhead subtracted for MicroPython: {empty_us * 1000 / n:.0f} ns; best of 5 runs of {n})")
 
 

@@ -211,17 +211,20 @@ _L_1MA = const(653118)  # log2(1000 uA): the model's reference current
 _L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
 _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _NOROOT = const(-0x3FFFFFFF)
+_L_LN2 = const(-34653)  # log2(ln 2)
 _K_ANCHOR = const(0)  # _g kinds: log2 S that reads the stored pulse (p = log2 Cp)
 _K_PEEL = const(1)  # contact scale that reads the stored pulse (p unused)
 _K_LAW = const(2)  # the law on the mE curve, x = log2 Q
 _K_CEIL = const(3)  # the line at T = t_max, x = log2 I
-_K_TWO = const(4)  # log2 Cp for which both stored pulses read right
+_K_TWO = const(4)  # log2 R(I) of the pulse before for which both stored pulses read right
 _K_ANCHOR0 = const(5)  # log2 S that reads the pulse before (p = log2 Cp)
 
 
 def _log2q(x):
     """log2(x) in Q.16 for an integer 1 <= x < 2**30 (error < 1 / 2**16: quadratic
-    interpolation in a 64-cell table)."""
+    interpolation in a 64-cell table). x < 1 is read as 1 (no endless loop)."""
+    if x < 1:
+        x = 1
     n = 22
     while x >= 0x800000:
         x >>= 1
@@ -342,6 +345,13 @@ class Controller:
         self._g0lt = 0
         self._g0rp = 0
         self._g0ls = 0
+        self._g2lc = 0  # log2 Cp of the last _K_TWO evaluation
+        self._cli = 0  # _K_TWO: the pulse that gives Cp (logs, Rp) and the other one
+        self._clt = 0
+        self._crp = 0
+        self._oli = 0
+        self._olt = 0
+        self._orp = 0
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -592,25 +602,28 @@ class Controller:
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
         pulse with log2 I = li, log2 T = lt."""
         lr = ls - _mul_q16(li - _L_1MA, self.skin_beta_q16)  # log2 R(I)
-        if lr > _L_R_MAX:
-            return 0x200000
         lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
-        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
-            u = 0x8000
-        elif lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
-            z = _exp2q(lz + 0xE0000)  # Q.14, < 2**13
+        if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+            lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
+            if lrz > _L_R_MAX:
+                return 0x200000
+            z = _exp2q(lz + 0xE0000) if lz > -0x1E0000 else 0  # Q.14, < 2**13
             v = 16384 - z // 5
             v = 16384 - ((z * v) >> 14) // 4
             v = 16384 - ((z * v) >> 14) // 3
             v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            rz = _exp2q(lt - lc + _L_1E6)  # R z = T / Cp (ohm), < R / 2 < 2**19
-            return self.skin_rs_ohm + (((rz >> 10) * v) >> 4) + (((rz & 0x3FF) * v) >> 14)
+            rz = _exp2q(lrz)  # < 2**20
+            return self.skin_rs_ohm + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
+        if lr > _L_R_MAX:
+            return 0x200000
+        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+            u = 0x8000
         else:
             zq = _exp2q(lz + 0x100000)  # z in Q.16, < 12 * 2**16
             lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
             u = 0x8000 - _exp2q(lw + 0xF0000)  # 1 - e^-z in Q.15
         r = _exp2q(lr)
-        return self.skin_rs_ohm + (((r >> 10) * u) >> 5) + (((r & 0x3FF) * u) >> 15)
+        return self.skin_rs_ohm + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
 
     def _g(self, kind, x, p):
         """The function of x whose sign change _root finds (kinds _K_*)."""
@@ -632,23 +645,28 @@ class Controller:
             if r > RP_MAX_OHM:
                 r = RP_MAX_OHM
             return self._line(r) - _exp2q(x + self._ltmax + 0x40000)
-        # _K_TWO: x = log2 Cp; S from the pulse before, then the misfit at the last one
-        ls = self._anchor(_K_ANCHOR0, self._g0li, self._g0rp, x)
-        if ls == _NOROOT:
+        # _K_TWO: x = log2 R(I) at the less charged of the two pulses (_c*); its reading
+        # gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R); then the
+        # misfit at the other pulse (_o*)
+        r = _exp2q(x)
+        y = x - _log2q(r - self._crp + self.skin_rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
+        if y <= 0:
             return _NOROOT
-        return self._rp_model(ls, x, self._p1li, self._p1lt) - self._p1rp
+        lc = self._clt - x + _L_1E6 - (_log2q(y) - 0x100000 + _L_LN2)
+        ls = x + _mul_q16(self._cli - _L_1MA, self.skin_beta_q16)
+        self._g2lc = lc
+        return self._rp_model(ls, lc, self._oli, self._olt) - self._orp
 
     def _root(self, kind, a, b, p):
         """x in [a, b] where _g(kind, x, p) changes sign (Illinois' regula falsi), to
-        1/2**16 (1/2**10 for _K_TWO); _NOROOT if the ends have one sign or _g fails."""
+        1/2**16; _NOROOT if the ends have one sign or _g fails."""
         fa = self._g(kind, a, p)
         fb = self._g(kind, b, p)
         if fa == _NOROOT or fb == _NOROOT or (fa > 0) == (fb > 0):
             return _NOROOT if fa != 0 and fb != 0 else (a if fa == 0 else b)
-        tol = 4 if kind == _K_TWO else 1
         side = 0
         n = 0
-        while b - a > tol and n < 40:
+        while b - a > 1 and n < 40:
             n += 1
             w = b - a
             num = fa if fa > 0 else -fa
@@ -739,21 +757,27 @@ class Controller:
             miss = rp_ohm - self._mpred
             dl = self._p1li - self._g0li
             if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
-                lc0 = self._mlc0
-                hi = lc0 + 0x20000
-                rs = self.skin_rs_ohm
-                if p0rp - rs < 16 or rp_ohm - rs < 16:
-                    return -1
-                x = self._g0lt + _L_1E6 - _log2q(p0rp - rs) - 0x2000  # the pulse charged Cp to Rp
-                if x < hi:
-                    hi = x
-                x = self._p1lt + _L_1E6 - _log2q(rp_ohm - rs) - 0x2000
-                if x < hi:
-                    hi = x
-                if hi > lc0 - 0x20000:
-                    lc = self._root(_K_TWO, lc0 - 0x20000, hi, 0)
-                    if lc != _NOROOT:
-                        self._mlc = lc
+                # the less charged pulse (smaller T / tau on the model as it stands)
+                # determines Cp, the other one (nearer Rs + R) S
+                b = self.skin_beta_q16
+                z0 = self._g0lt + _mul_q16(self._g0li - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
+                z1 = self._p1lt + _mul_q16(self._p1li - _L_1MA, b)
+                sw = z0 > z1
+                self._cli = self._p1li if sw else self._g0li
+                self._clt = self._p1lt if sw else self._g0lt
+                self._crp = rp_ohm if sw else p0rp
+                self._oli = self._g0li if sw else self._p1li
+                self._olt = self._g0lt if sw else self._p1lt
+                self._orp = p0rp if sw else rp_ohm
+                d = self._crp - self.skin_rs_ohm
+                if d >= 16:
+                    lo = _log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
+                    lr = self._root(_K_TWO, lo, lo + 0x40000, 0)
+                    if lr != _NOROOT:
+                        self._g(_K_TWO, lr, 0)  # (sets _g2lc for the root itself)
+                        lc = self._g2lc
+                        if self._mlc0 - 0x30000 <= lc <= self._mlc0 + 0x10000:  # Cp: 1/8 ... 2 x the fit's
+                            self._mlc = lc
         ls = self._anchor(_K_ANCHOR, self._p1li, rp_ohm, self._mlc)
         if ls == _NOROOT:
             return -1

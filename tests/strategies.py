@@ -52,3 +52,15 @@ def scenario(draw, max_updates=12):
     cal = draw(calibration(lim))
     rps = draw(st.lists(st.one_of(rp_valid, rp_any), min_size=1, max_size=max_updates))
     return lim, cal, rps
+
+
+@st.composite
+def skin_model(draw):
+    """MODE_FAST's skin model (rs_ohm, beta_q16, cp_pf) over its whole accepted range."""
+    import sensation_core as sc
+
+    return (
+        draw(st.integers(0, sc.SKIN_RS_MAX_OHM)),
+        draw(st.integers(sc.SKIN_BETA_MIN_Q16, sc.SKIN_BETA_MAX_Q16)),
+        draw(st.one_of(st.integers(sc.SKIN_CP_MIN_PF, sc.SKIN_CP_MAX_PF), st.integers(5000, 60000))),
+    )

@@ -326,3 +326,63 @@ def test_fast_mode_starts_with_the_prior_step_and_then_jumps():
     assert f.fast_jumps == 2
     assert f.i_ua > a.i_ua and f.t_us < a.t_us  # same direction as the paper, further
     assert f.i_ua ** 2 * f.t_us == pytest.approx(cal.i0_ua**2 * cal.t0_us, rel=0.01)  # still on the mE curve
+
+
+# ---- MODE_FAST's skin model: the integer functions against floats ----
+
+@settings(max_examples=3000)
+@given(st.integers(1, (1 << 30) - 1))
+def test_log2q_is_within_1_5_units(x):
+    import math
+
+    assert abs(sc._log2q(x) - math.log2(x) * 65536) < 1.5
+
+
+@settings(max_examples=3000)
+@given(st.integers(-10 * 65536, 29 * 65536 - 1))
+def test_exp2q_is_within_1e_6_then_rounded(lx):
+    v = 2.0 ** (lx / 65536)
+    assert abs(sc._exp2q(lx) - v) <= 1e-6 * v + 0.5
+
+
+@settings(max_examples=3000)
+@given(st.integers(0, sc.SKIN_RS_MAX_OHM), st.integers(sc.SKIN_BETA_MIN_Q16, sc.SKIN_BETA_MAX_Q16),
+       st.integers(sc.SKIN_CP_MIN_PF, sc.SKIN_CP_MAX_PF), st.floats(1000, 300000), st.integers(50, 20000),
+       st.integers(1, 8000))
+def test_the_integer_skin_model_reads_like_the_float_model(rs, beta, cp, s_ohm, i_ua, t_us):
+    """Rp within 2 ohm or 5e-4 wherever the model reads a valid Rp (500 ohm ... 200 kohm)."""
+    import math
+
+    from steadytouch import skin
+
+    want = float(skin.rp_ohm(i_ua, t_us, rs, beta / 65536, s_ohm, cp))
+    if not (sc.RP_MIN_OHM <= want <= sc.RP_MAX_OHM):
+        return
+    c = sc.Controller(1, 20000, 1, 8000, 10_000_000)
+    c.set_skin(rs, beta, cp)
+    got = c._rp_model(round(math.log2(s_ohm) * 65536), round(math.log2(cp) * 65536),
+                      round(math.log2(i_ua) * 65536), round(math.log2(t_us) * 65536))
+    assert abs(got - want) <= max(2.0, 5e-4 * want), (got, want)
+
+
+def test_the_skin_model_finds_the_laws_point_of_its_own_skin():
+    """On a skin that is exactly the model (float), one model jump lands on the law: the
+    pulse after a hydration step is within the pulse's resolution of the Q-Rp line."""
+    from steadytouch import skin
+
+    rs, beta, cp, s0 = 500, 0.55, 14000, 34210.0
+    c = sc.Controller(100, 10000, 50, 8000, 10_000_000)
+    rp0 = round(float(skin.rp_ohm(1000, 1000, rs, beta, s0, cp)))
+    c.calibrate(1000, 1000, rp0, -1670, 186000)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(rs, round(beta * 65536), cp)
+    assert c.update(rp0) == sc.ST_OK and (c.i_ua, c.t_us) == (1000, 1000)
+    s1 = s0 * 0.6  # gel: S falls, Cp stays
+    c.update(round(float(skin.rp_ohm(1000, 1000, rs, beta, s1, cp))))
+    assert c.model_jumps == 1
+    i, t = c.i_ua, c.t_us
+    rp = float(skin.rp_ohm(i, t, rs, beta, s1, cp))
+    mq = (1000 * 1000 - 186000) / (rp0 + 1670)
+    line = 186000 + mq * (rp + 1670)
+    assert abs(i * t - line) <= 0.5 * i + 0.5 * t + 0.002 * line, (i, t, line)
+    assert abs(i * t - line) < abs(1000 * 1000 - line) / 20  # (the paper's step: 1/(1-G) further)

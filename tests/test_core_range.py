@@ -10,16 +10,18 @@ from hypothesis import strategies as st
 from steadytouch.rangecheck import RangeError, load_instrumented
 
 from conftest import SHARED
-from strategies import scenario
+from strategies import scenario, skin_model
 
 CORE, TRACK = load_instrumented(SHARED / "sensation_core.py", "sensation_core_checked")
 
 
-def run_case(lim, cal, rps, mode=None):
+def run_case(lim, cal, rps, mode=None, skin=None):
     c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
     c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
     if mode is not None:
         c.set_mode(mode)
+    if skin is not None:
+        c.set_skin(*skin)
     for rp in rps:
         c.update(rp)
         CORE.rp_from_vp(min(max(rp, 0), CORE.VP_LIMIT_MV), lim.i_max_ua)
@@ -49,6 +51,13 @@ def test_intermediates_below_2_30(case, mode):
     run_case(*case, mode=mode)
 
 
+@settings(max_examples=1000, deadline=None)
+@given(scenario(max_updates=16), skin_model())
+def test_skin_model_intermediates_below_2_30(case, skin):
+    """MODE_FAST with a skin model anywhere in its accepted range."""
+    run_case(*case, mode=CORE.MODE_FAST, skin=skin)
+
+
 def test_intermediates_below_2_30_at_corners():
     import sensation_core as sc
     from steadytouch.reference import Calibration, Limits
@@ -74,6 +83,11 @@ def test_intermediates_below_2_30_at_corners():
                     run_case(lim, Calibration(i0, t0, rp0, x, y),
                              [500, 200000, rp0, 499, 200001, 1 << 29, -(1 << 29), 500, 800, 200000, 150000, 500],
                              mode)
+                for skin in [(0, sc.SKIN_BETA_MIN_Q16, sc.SKIN_CP_MIN_PF), (sc.SKIN_RS_MAX_OHM, sc.SKIN_BETA_MAX_Q16,
+                             sc.SKIN_CP_MAX_PF), (500, 36045, 14000)]:
+                    run_case(lim, Calibration(i0, t0, rp0, x, y),
+                             [500, 200000, rp0, 800, 200000, 150000, 500, rp0 // 2, rp0, 3 * rp0 // 2, rp0],
+                             CORE.MODE_FAST, skin)
                 n += 1
     assert n > 100
     assert TRACK.max_abs < 1 << 30
