@@ -302,10 +302,13 @@ def main():
     # (the law solved on the true skin each pulse) shows where a target is out of
     # reach of any controller that measures one Rp per pulse
     print()
-    fails, impossible = [], []
-    for name, *_ in cases:
+    fails, impossible, drifts = [], [], []
+    for name, _, ev, _ in cases:
         ak, fa, orc = (summary[(name, m)] for m in (sc.MODE_AKHTAR, sc.MODE_FAST, ORACLE))
         for j, (sa, sf, so) in enumerate(zip(ak["settle"], fa["settle"], orc["settle"])):
+            if ev[j].h_tau_pulses > 0:  # a drift, not a step: the 2-pulse target is about steps
+                drifts.append(f"{name} #{j}: fast {fmt_settle(sf)} (akhtar {fmt_settle(sa)}, oracle {fmt_settle(so)})")
+                continue
             if (sa is None or sa > 2) and (sf is None or sf > 2):
                 line = f"{name} #{j}: fast {fmt_settle(sf)} (akhtar {fmt_settle(sa)}, oracle {fmt_settle(so)})"
                 (impossible if so is None or so > 2 else fails).append(line)
@@ -315,11 +318,14 @@ def main():
             (impossible if orc["rms_q"] > ak["rms_q"] / 2 + 1e-4 else fails).append(line)
         if fa["over_i"] > 0.05 or fa["over_q"] > 0.05:
             fails.append(f"{name}: fast overshoot I {fa['over_i']:.1%} / Q {fa['over_q']:.1%}")
-    print(f"MODE_FAST criteria: {len(fails)} not met, {len(impossible)} out of reach of the oracle too")
+    print(f"MODE_FAST criteria: {len(fails)} not met, {len(impossible)} out of reach of the oracle too "
+          f"({len(drifts)} drift disturbances listed apart)")
     for f in fails:
         print("  - not met: " + f)
     for f in impossible:
         print("  - out of reach: " + f)
+    for f in drifts:
+        print("  - drift (the skin keeps moving; settling is not a step's): " + f)
 
 
 def plot(name, runs, out: Path):
