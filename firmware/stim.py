@@ -498,7 +498,33 @@ class Stimulator:
             return self._calibrate(r, lo, hi)
         if cmd == hp.CMD_SET_LIMITS:
             return self._set_limits(r)
+        if cmd == hp.CMD_SET_SKIN:
+            return self._set_skin(r, lo, hi)
         return self._ack(r, hp.RES_UNKNOWN_COMMAND, hp.O_OUT_CMD)
+
+    def _set_skin(self, r, lo, hi):
+        # MODE_FAST's skin model for channels lo..hi-1; only while they are disarmed;
+        # all three 0 removes it. Checked before anything changes.
+        rs = hp.get_u16(r, hp.O_ARG)
+        beta = hp.get_i32(r, hp.O_ARG + 2)
+        cp = hp.get_i32(r, hp.O_ARG + 6)
+        k = lo
+        while k < hi:
+            if self.chans[k].armed:
+                return self._ack(r, hp.RES_BAD_STATE, hp.O_OUT_CH)
+            k += 1
+        if rs or beta or cp:
+            if rs > sc.SKIN_RS_MAX_OHM:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+            if not sc.SKIN_BETA_MIN_Q16 <= beta <= sc.SKIN_BETA_MAX_Q16:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
+            if not sc.SKIN_CP_MIN_PF <= cp <= sc.SKIN_CP_MAX_PF:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
+        k = lo
+        while k < hi:
+            self.chans[k].ctl.set_skin(rs, beta, cp)
+            k += 1
+        return self._ack(r, hp.RES_OK, 0)
 
     def _calibrate(self, r, lo, hi):
         i0 = hp.get_u16(r, hp.O_ARG)

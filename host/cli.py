@@ -408,6 +408,21 @@ def cmd_fit(a) -> int:
     return 0
 
 
+def cmd_skin(a) -> int:
+    from . import skin
+
+    m = skin.fit(skin.load(a.file))
+    say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
+        f"worst misfit {m.worst_misfit:.3%} over the pulses")
+    if m.worst_misfit > 0.02:
+        say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
+    if a.send:
+        with open_transport(a.device) as t:
+            ack = Device(t).skin(*m.args(), ch=_channel(a))
+            say(f"{a.device}: {ack.words()}")
+    return 0
+
+
 def cmd_validate(a) -> int:
     from . import fit as F
 
@@ -548,6 +563,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="out", help="folder for calibration.json and fit.png (default out/)")
     s.add_argument("--json", action="store_true", help="print the results as JSON")
 
+    s = add("skin", cmd_skin, "fit MODE_FAST's electrode model (Rs, beta, Cp) to calibration pulses; --send sets it",
+            "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm)\n"
+            "  steadytouch skin exp1.csv --send --channel 0 --device hid://1209:0001")
+    s.add_argument("file", help="CSV with i_ua, t_us, rp_ohm per pulse (one person, one site)")
+    s.add_argument("--send", action="store_true", help="send the fitted model to the device (disarmed)")
+    s.add_argument("--channel", type=int, help="channel (default: all)")
     s = add("validate", cmd_validate, "r2 of participant-chosen points against the controller's lines (Exp. 2)",
             "  steadytouch validate exp2.csv --calibration out/calibration.json", device=False)
     s.add_argument("file")

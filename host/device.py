@@ -85,5 +85,8 @@ class Device:
     def mode(self, mode, rate_hz=0):
         return self.command(self.cmds.set_mode(mode, rate_hz))
 
+    def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
+        return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))
+
     def keepalive(self, timeout_ms=0):
         return self.command(self.cmds.keepalive(timeout_ms))

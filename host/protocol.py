@@ -39,6 +39,7 @@ COMMAND_WORDS = {
     hp.CMD_SET_MODE: "mode",
     hp.CMD_KEEPALIVE: "keepalive",
     hp.CMD_GET_INFO: "info",
+    hp.CMD_SET_SKIN: "skin",
 }
 
 _TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBB")  # bytes 0..47
@@ -220,6 +221,10 @@ class Commands:
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc) -> bytes:
         return bytes(hp.cmd_set_limits(bytearray(64), i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc, self._next()))
+
+    def set_skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL) -> bytes:
+        """MODE_FAST's skin model (host/skin.py fits it); (0, 0, 0) removes it."""
+        return bytes(hp.cmd_set_skin(bytearray(64), ch, rs_ohm, beta_q16, cp_pf, self._next()))
 
     def set_mode(self, mode, rate_hz=0) -> bytes:
         return bytes(hp.cmd_set_mode(bytearray(64), mode, rate_hz, self._next()))

@@ -53,6 +53,28 @@ def sweep(i0_ua: int, t0_us: int) -> list[tuple[int, int]]:
     return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in SWEEP_T_US if t != t0_us]
 
 
+def load(path) -> list[tuple[float, float, float]]:
+    """(i_ua, t_us, rp_ohm) rows of a CSV with those columns (a header row; other
+    columns, e.g. Exp. 1's participant and condition, are ignored)."""
+    import csv
+
+    rows = []
+    with open(path, newline="") as f:
+        r = csv.DictReader(f)
+        need = {"i_ua", "t_us", "rp_ohm"}
+        if not r.fieldnames or not need <= set(r.fieldnames):
+            raise SkinFitError(f"{path}: needs the columns i_ua, t_us, rp_ohm (header: {r.fieldnames})")
+        for n, row in enumerate(r, start=2):
+            try:
+                v = tuple(float(row[k]) for k in ("i_ua", "t_us", "rp_ohm"))
+            except ValueError:
+                raise SkinFitError(f"{path}:{n}: i_ua, t_us and rp_ohm must be numbers") from None
+            if min(v) <= 0:
+                raise SkinFitError(f"{path}:{n}: i_ua, t_us and rp_ohm must be > 0")
+            rows.append(v)
+    return rows
+
+
 def fit(pulses) -> SkinModel:
     """Least-squares fit (relative residuals) of Rs, beta, S, Cp to (i_ua, t_us, rp_ohm)
     rows. Needs at least 5 pulses with at least 3 different durations."""

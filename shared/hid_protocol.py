@@ -51,6 +51,7 @@ CMD_SET_LIMITS = const(0x13)
 CMD_SET_MODE = const(0x14)
 CMD_KEEPALIVE = const(0x15)
 CMD_GET_INFO = const(0x16)
+CMD_SET_SKIN = const(0x17)  # MODE_FAST's skin model (Controller.set_skin)
 CH_ALL = const(0xFF)
 
 # ---- result codes (ACK byte 2) ----
@@ -241,6 +242,15 @@ def cmd_set_mode(b, mode, rate_hz=0, tag=0):
     _cmd(b, CMD_SET_MODE, CH_ALL, tag)
     b[O_ARG] = mode
     b[O_ARG + 1] = rate_hz
+    seal(b)
+    return b
+
+
+def cmd_set_skin(b, ch, rs_ohm, beta_q16, cp_pf, tag=0):
+    _cmd(b, CMD_SET_SKIN, ch, tag)
+    put_u16(b, O_ARG, rs_ohm)
+    put_i32(b, O_ARG + 2, beta_q16)
+    put_i32(b, O_ARG + 6, cp_pf)
     seal(b)
     return b
 

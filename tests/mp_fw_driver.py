@@ -23,7 +23,8 @@ def digest():
     for c in s.chans:
         ctl = c.ctl
         parts += [int(c.armed), c.stop, int(c.have_cal), c.i0, c.t0, c.x, c.y, int(c.calibrating),
-                  ctl.mode, ctl.i_min_ua, ctl.i_max_ua, ctl.t_min_us, ctl.t_max_us, ctl.q_max_pc]
+                  ctl.mode, ctl.i_min_ua, ctl.i_max_ua, ctl.t_min_us, ctl.t_max_us, ctl.q_max_pc,
+                  ctl.skin_rs_ohm, ctl.skin_beta_q16, ctl.skin_cp_pf]
     return ",".join([str(p) for p in parts])
 
 

@@ -173,3 +173,29 @@ def test_sim_reports_progress_in_simulated_time():
     reps = run_firmware("exercise", "akhtar", Calib(), frames=6000, progress=seen.append)
     assert len(reps) == 3 + 6000
     assert seen and seen == sorted(seen) and 0 <= seen[-1] <= 120.0
+
+
+def test_skin_fits_calibration_pulses_and_sends_them(tmp_path):
+    """`steadytouch skin`: the electrode model from pulses read on the simulated skin (its
+    own parameters come back), sent to the simulated device; a bad file is one line."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "firmware"))
+    from sim_electrode import Electrode
+
+    from steadytouch import skin
+
+    e = Electrode()
+    f = tmp_path / "pulses.csv"
+    f.write_text("i_ua,t_us,rp_ohm\n" + "".join(
+        f"{i},{t},{round(e.rp_kohm(i, t) * 1000)}\n" for i, t in skin.sweep(1000, 1000)))
+    p = run("skin", str(f), "--send", "--device", "sim://steady")
+    assert p.returncode == 0, p.stdout + p.stderr
+    m = skin.fit(skin.load(f))
+    assert abs(m.rs_ohm - e.rs * 1000) <= 5 and abs(m.beta - e.beta) < 0.002 and abs(m.cp_pf - e.c * e.area0 * 1000) < 50
+    assert f"Cp {m.cp_pf} pF" in p.stdout and "sim://steady: skin: ok" in p.stdout
+    bad = tmp_path / "bad.csv"
+    bad.write_text("i_ua,t_us,rp_ohm\n1000,1000,abc\n")
+    p = run("skin", str(bad))
+    assert p.returncode != 0 and "bad.csv:2: i_ua, t_us and rp_ohm must be numbers" in p.stderr
+    assert "Traceback" not in p.stderr

@@ -68,7 +68,10 @@ def test_every_command_round_trips(dev):
         (c.calibrate(1000, 1000, -1670, 186000, ch=0), "calibrate: ok"),
         (c.arm(1), "arm: not calibrated (send calibrate first) (byte 2)"),
         (c.calibrate(1200, 900, -1000, 0, ch=1), "calibrate: ok"),
+        (c.set_skin(499, 36043, 13999, ch=0), "skin: ok"),
+        (c.set_skin(0, 0, 0, ch=1), "skin: ok"),
         (c.arm(), "arm: ok"),
+        (c.set_skin(500, 36045, 14000), "skin: not allowed while armed (byte 2)"),
         (c.calibrate(1000, 1000, -1670, 186000), "calibrate: not allowed while armed (byte 2)"),
         (c.keepalive(500), "keepalive: ok"),
         (c.keepalive(0), "keepalive: ok"),
@@ -79,6 +82,7 @@ def test_every_command_round_trips(dev):
         ack, _, _ = dev.send(report)
         assert isinstance(ack, Ack) and ack.tag == report[1] and ack.command == report[0]
         assert ack.words() == words
+    assert ",499,36043,13999," in dev.state + "," and dev.state.endswith(",0,0,0")  # ch 0 has the model, ch 1 none
     info, _, _ = dev.send(c.get_info())
     assert (info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us, info.q_max_pc) == (200, 8000, 50, 4000, 8_000_000)
     assert (info.mode, info.rate_hz) == (sc.MODE_OPEN_LOOP, 40)
@@ -102,6 +106,11 @@ def test_every_command_round_trips(dev):
         (lambda c: c.calibrate(1000, 1000, 1, 0), hp.O_ARG + 4),
         (lambda c: c.calibrate(1000, 1000, -1670, 1_000_000), hp.O_ARG + 8),
         (lambda c: c.calibrate(1000, 1000, -1670, -1), hp.O_ARG + 8),
+        (lambda c: c.set_skin(sc.SKIN_RS_MAX_OHM + 1, 36045, 14000), hp.O_ARG),
+        (lambda c: c.set_skin(500, sc.SKIN_BETA_MIN_Q16 - 1, 14000), hp.O_ARG + 2),
+        (lambda c: c.set_skin(500, sc.SKIN_BETA_MAX_Q16 + 1, 14000), hp.O_ARG + 2),
+        (lambda c: c.set_skin(500, 36045, sc.SKIN_CP_MIN_PF - 1), hp.O_ARG + 6),
+        (lambda c: c.set_skin(500, 36045, sc.SKIN_CP_MAX_PF + 1), hp.O_ARG + 6),
     ],
 )
 def test_out_of_range_changes_nothing(dev, build, detail):
@@ -122,7 +131,8 @@ def test_bad_crc_unknown_command_bad_channel(dev):
     assert dev.send(bytes(hp.cmd_arm(bytearray(64), 2)))[0].result == hp.RES_BAD_CHANNEL
 
 
-COMMANDS = [hp.CMD_ARM, hp.CMD_DISARM, hp.CMD_CALIBRATE, hp.CMD_SET_LIMITS, hp.CMD_SET_MODE, hp.CMD_KEEPALIVE, hp.CMD_GET_INFO]
+COMMANDS = [hp.CMD_ARM, hp.CMD_DISARM, hp.CMD_CALIBRATE, hp.CMD_SET_LIMITS, hp.CMD_SET_MODE, hp.CMD_KEEPALIVE, hp.CMD_GET_INFO,
+            hp.CMD_SET_SKIN]
 
 
 @st.composite
