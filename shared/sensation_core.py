@@ -260,10 +260,11 @@ def _exp2q(lx):
 
 
 def _mul_q16(x, b):
-    """x * b / 2**16 rounded towards zero, |x| < 2**21, 0 <= b < 2**17 (split: < 2**30)."""
+    """x * b / 2**16 rounded towards zero, |x| < 2**21, |b| < 2**17 (split: < 2**30)."""
     a = -x if x < 0 else x
-    y = (((a >> 10) * b) >> 6) + (((a & 0x3FF) * b) >> 16)
-    return -y if x < 0 else y
+    c = -b if b < 0 else b
+    y = (((a >> 10) * c) >> 6) + (((a & 0x3FF) * c) >> 16)
+    return -y if (x < 0) != (b < 0) else y
 
 
 def _half(f):
@@ -596,7 +597,7 @@ class Controller:
             return rp_ohm
         return rp2
 
-    # ---- MODE_FAST's skin model (docs/controller.md, "The skin model") ----
+    # ---- MODE_FAST's skin model (docs/controller.md, "MODE_FAST with a skin model") ----
 
     def _rp_model(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
@@ -632,8 +633,7 @@ class Controller:
         if kind == _K_ANCHOR0:  # the same at the pulse before it (_g0*)
             return self._rp_model(x, p, self._g0li, self._g0lt) - self._g0rp
         if kind == _K_PEEL:  # x = log2 contact from the skin before: S ~ a**(beta - 1), Cp ~ a
-            b = self.skin_beta_q16 - 0x10000
-            ls = self._g0ls + (_mul_q16(x, b) if b >= 0 else -_mul_q16(x, -b))
+            ls = self._g0ls + _mul_q16(x, self.skin_beta_q16 - 0x10000)
             return self._rp_model(ls, self._mlc + x, self._p1li, self._p1lt) - self._p1rp
         if kind == _K_LAW:  # x = log2 Q on the mE curve: L(Rp(Q)) - Q, 1/16 pC
             r = self._rp_model(self._mls, self._mlc, self._lme - x, (x << 1) - self._lme)
@@ -794,10 +794,9 @@ class Controller:
                 self._g0ls = ls0
                 la = self._root(_K_PEEL, -0x30000, 0x10000, 0)
                 if la != _NOROOT:
-                    b = self.skin_beta_q16 - 0x10000
                     ls1 = self._mls
                     lc1 = self._mlc
-                    self._mls = ls0 + (_mul_q16(la, b) if b >= 0 else -_mul_q16(la, -b))
+                    self._mls = ls0 + _mul_q16(la, self.skin_beta_q16 - 0x10000)
                     self._mlc = lc1 + la
                     q2 = self._model_q(lq_k)
                     if q2 != _NOROOT and q2 < q16:
