@@ -58,20 +58,16 @@ def load(path) -> list[tuple[float, float, float]]:
     columns, e.g. Exp. 1's participant and condition, are ignored)."""
     import csv
 
+    from .fit import _num  # the same row checks and messages as `steadytouch fit`
+
     rows = []
     with open(path, newline="") as f:
         r = csv.DictReader(f)
-        need = {"i_ua", "t_us", "rp_ohm"}
-        if not r.fieldnames or not need <= set(r.fieldnames):
+        need = ("i_ua", "t_us", "rp_ohm")
+        if not r.fieldnames or not set(need) <= set(r.fieldnames):
             raise SkinFitError(f"{path}: needs the columns i_ua, t_us, rp_ohm (header: {r.fieldnames})")
         for n, row in enumerate(r, start=2):
-            try:
-                v = tuple(float(row[k]) for k in ("i_ua", "t_us", "rp_ohm"))
-            except ValueError:
-                raise SkinFitError(f"{path}:{n}: i_ua, t_us and rp_ohm must be numbers") from None
-            if min(v) <= 0:
-                raise SkinFitError(f"{path}:{n}: i_ua, t_us and rp_ohm must be > 0")
-            rows.append(v)
+            rows.append(tuple(_num(path, n, k, row[k]) for k in need))
     return rows
 
 

@@ -197,5 +197,5 @@ def test_skin_fits_calibration_pulses_and_sends_them(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("i_ua,t_us,rp_ohm\n1000,1000,abc\n")
     p = run("skin", str(bad))
-    assert p.returncode != 0 and "bad.csv:2: i_ua, t_us and rp_ohm must be numbers" in p.stderr
+    assert p.returncode != 0 and "bad.csv row 2: column rp_ohm is not a number: 'abc'" in p.stderr
     assert "Traceback" not in p.stderr
