@@ -347,12 +347,7 @@ class Controller:
         self._g0rp = 0
         self._g0ls = 0
         self._g2lc = 0  # log2 Cp of the last _K_TWO evaluation
-        self._cli = 0  # _K_TWO: the pulse that gives Cp (logs, Rp) and the other one
-        self._clt = 0
-        self._crp = 0
-        self._oli = 0
-        self._olt = 0
-        self._orp = 0
+        self._msw = 0  # _K_TWO: 1 = Cp from the pulse just measured, 0 = from the one before
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -645,17 +640,24 @@ class Controller:
             if r > RP_MAX_OHM:
                 r = RP_MAX_OHM
             return self._line(r) - _exp2q(x + self._ltmax + 0x40000)
-        # _K_TWO: x = log2 R(I) at the less charged of the two pulses (_c*); its reading
+        # _K_TWO: x = log2 R(I) at the less charged of the two pulses (_msw); its reading
         # gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R); then the
-        # misfit at the other pulse (_o*)
+        # misfit at the other pulse
+        sw = self._msw  # (one name at a time: a 6-tuple would be allocated in MicroPython)
+        cli = self._p1li if sw else self._g0li
+        clt = self._p1lt if sw else self._g0lt
+        crp = self._p1rp if sw else self._g0rp
+        oli = self._g0li if sw else self._p1li
+        olt = self._g0lt if sw else self._p1lt
+        orp = self._g0rp if sw else self._p1rp
         r = _exp2q(x)
-        y = x - _log2q(r - self._crp + self.skin_rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
+        y = x - _log2q(r - crp + self.skin_rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
         if y <= 0:
             return _NOROOT
-        lc = self._clt - x + _L_1E6 - (_log2q(y) - 0x100000 + _L_LN2)
-        ls = x + _mul_q16(self._cli - _L_1MA, self.skin_beta_q16)
+        lc = clt - x + _L_1E6 - (_log2q(y) - 0x100000 + _L_LN2)
+        ls = x + _mul_q16(cli - _L_1MA, self.skin_beta_q16)
         self._g2lc = lc
-        return self._rp_model(ls, lc, self._oli, self._olt) - self._orp
+        return self._rp_model(ls, lc, oli, olt) - orp
 
     def _root(self, kind, a, b, p):
         """x in [a, b] where _g(kind, x, p) changes sign (Illinois' regula falsi), to
@@ -762,14 +764,8 @@ class Controller:
                 b = self.skin_beta_q16
                 z0 = self._g0lt + _mul_q16(self._g0li - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
                 z1 = self._p1lt + _mul_q16(self._p1li - _L_1MA, b)
-                sw = z0 > z1
-                self._cli = self._p1li if sw else self._g0li
-                self._clt = self._p1lt if sw else self._g0lt
-                self._crp = rp_ohm if sw else p0rp
-                self._oli = self._g0li if sw else self._p1li
-                self._olt = self._g0lt if sw else self._p1lt
-                self._orp = p0rp if sw else rp_ohm
-                d = self._crp - self.skin_rs_ohm
+                self._msw = 1 if z0 > z1 else 0
+                d = (rp_ohm if self._msw else p0rp) - self.skin_rs_ohm
                 if d >= 16:
                     lo = _log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
                     lr = self._root(_K_TWO, lo, lo + 0x40000, 0)
