@@ -29,10 +29,8 @@ except ImportError:  # CPython: no heap lock
 
 FW_VERSION = (0, 1, 0)
 _MAX_CMDS_PER_FRAME = const(4)
-RATE_MIN_HZ = const(10)
-RATE_MAX_HZ = const(100)
-KEEPALIVE_MIN_MS = const(50)
-KEEPALIVE_MAX_MS = const(10000)
+RATE_MIN_HZ = hp.RATE_MIN_HZ
+RATE_MAX_HZ = hp.RATE_MAX_HZ
 
 
 class Channel:
@@ -446,7 +444,7 @@ class Stimulator:
         self.last_host = now
         if cmd == hp.CMD_KEEPALIVE:
             ms = hp.get_u16(r, hp.O_ARG)
-            if ms and not (KEEPALIVE_MIN_MS <= ms <= KEEPALIVE_MAX_MS):
+            if ms and not (hp.KEEPALIVE_MIN_MS <= ms <= hp.KEEPALIVE_MAX_MS):
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
             self.keepalive_ms = ms
             return self._ack(r, hp.RES_OK, 0)
@@ -484,7 +482,7 @@ class Stimulator:
             rate = r[hp.O_ARG + 1]
             if not sc.MODE_OPEN_LOOP <= mode <= sc.MODE_FAST:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-            if rate and not (RATE_MIN_HZ <= rate <= RATE_MAX_HZ):
+            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ):
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)
             self.mode = mode
             k = 0

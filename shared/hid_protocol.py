@@ -54,6 +54,20 @@ CMD_GET_INFO = const(0x16)
 CMD_SET_SKIN = const(0x17)  # MODE_FAST's skin model (Controller.set_skin)
 CH_ALL = const(0xFF)
 
+# ---- what the device accepts (the host's command builders check the same) ----
+# Shortest pulse any command may set (soft t_min, t0): the PIO gate needs
+# T > its 2-cycle overhead, and the 10 us ADC must catch >= 2 samples inside
+# the pulse for the median-of-3 peak. Enforced at SET_LIMITS/CALIBRATE and
+# again at the board layer (docs/safety.md).
+T_FLOOR_US = const(20)
+# Keep-alive: on whenever a channel is armed; a command can change the timeout
+# within these bounds but never turn it off (0 is refused).
+KEEPALIVE_MIN_MS = const(50)
+KEEPALIVE_MAX_MS = const(10000)
+KEEPALIVE_DEFAULT_MS = const(1000)
+RATE_MIN_HZ = const(10)
+RATE_MAX_HZ = const(100)
+
 # ---- result codes (ACK byte 2) ----
 RES_OK = const(0)
 RES_BAD_CRC = const(1)
