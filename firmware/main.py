@@ -105,7 +105,7 @@ def main_sim(argv):
     clock = board_sim.RealClock() if o["realtime"] else board_sim.VirtualClock(o["start"])
     usb = board_sim.StdioUSB()
     board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb)
-    s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"])
+    s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=0)  # host keep-alive: issue 11
     if o["auto"]:
         auto_start(s, o, clock.ticks_us())
     frames = o["frames"]

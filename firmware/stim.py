@@ -62,7 +62,9 @@ class Channel:
 class Stimulator:
     """The on-device loop. `board` is the hardware, `clock` the tick source."""
 
-    def __init__(self, board, clock, cfg, n_channels=None, rate_hz=None):
+    def __init__(self, board, clock, cfg, n_channels=None, rate_hz=None, keepalive_ms=None):
+        """keepalive_ms: None -> hp.KEEPALIVE_DEFAULT_MS. 0 (off) is for scripted
+        simulations whose host is the script itself; no command can set 0."""
         self.board = board
         self.clock = clock
         self.hard_i = cfg.HARD_I_MAX_UA
@@ -76,12 +78,14 @@ class Stimulator:
         if not (cfg.HARD_I_MAX_UA <= sc.I_LIMIT_UA and cfg.HARD_T_MAX_US <= sc.T_LIMIT_US
                 and cfg.HARD_Q_MAX_PC <= sc.Q_LIMIT_PC and cfg.COMPLIANCE_MV <= sc.VP_LIMIT_MV):
             raise ValueError("board config hard limits exceed the core's envelope (docs/controller.md)")
+        if cfg.HARD_T_MAX_US < hp.T_FLOOR_US or cfg.HARD_I_MAX_UA < 1:
+            raise ValueError("board config: HARD_T_MAX_US must be >= %d us (T_FLOOR_US)" % hp.T_FLOOR_US)
         n = n_channels or cfg.N_CHANNELS
         if not 1 <= n <= 4 or n > board.n_channels:
             raise ValueError("n_channels=%d out of range [1, %d]" % (n, min(4, board.n_channels)))
         self.n = n
-        lim = [min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA), cfg.HARD_I_MAX_UA,
-               min(cfg.T_MIN_US, cfg.HARD_T_MAX_US), cfg.HARD_T_MAX_US, cfg.HARD_Q_MAX_PC]
+        lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA,
+               max(hp.T_FLOOR_US, min(cfg.T_MIN_US, cfg.HARD_T_MAX_US)), cfg.HARD_T_MAX_US, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
         self.chans = [Channel(k, lim) for k in range(n)]
         self.mode = sc.MODE_AKHTAR
@@ -93,7 +97,12 @@ class Stimulator:
         self.overruns = 0
         self.loop_us = 0
         self.frame_t = 0
-        self.keepalive_ms = 0
+        if keepalive_ms is None:
+            keepalive_ms = hp.KEEPALIVE_DEFAULT_MS
+        if keepalive_ms and not hp.KEEPALIVE_MIN_MS <= keepalive_ms <= hp.KEEPALIVE_MAX_MS:
+            raise ValueError("keepalive_ms=%d out of range: 0 (off, simulation only) or [%d, %d]"
+                             % (keepalive_ms, hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
+        self.keepalive_ms = keepalive_ms
         self.last_host = clock.ticks_us()
         self.tx = bytearray(hp.REPORT_LEN)
         self.rx = bytearray(hp.REPORT_LEN)
@@ -148,6 +157,10 @@ class Stimulator:
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
         board.feed_watchdog()
+        if self.keepalive_ms:  # before any pulse: none is fired once the host is overdue
+            self._enter()
+            self._check_keepalive(now)
+            self._leave()
         k = 0
         while k < self.n:
             c = self.chans[k]
@@ -171,10 +184,6 @@ class Stimulator:
             m += 1
         if m:  # outputs follow the commands at once
             self.sync_outputs()
-        if self.keepalive_ms:
-            self._enter()
-            self._check_keepalive(now)
-            self._leave()
         self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     def _enter(self):
@@ -202,7 +211,7 @@ class Stimulator:
         c.cal_pulse = c.calibrating
         if not c.armed or c.i <= 0:
             return False
-        if c.i > self.hard_i or c.t > self.hard_t or c.t <= 0 or c.i * c.t > self.hard_q:
+        if c.i > self.hard_i or c.t > self.hard_t or c.t < hp.T_FLOOR_US or c.i * c.t > self.hard_q:
             self._latch(c, hp.STOP_LIMIT)
             return False
         c.di = c.i
@@ -444,7 +453,7 @@ class Stimulator:
         self.last_host = now
         if cmd == hp.CMD_KEEPALIVE:
             ms = hp.get_u16(r, hp.O_ARG)
-            if ms and not (hp.KEEPALIVE_MIN_MS <= ms <= hp.KEEPALIVE_MAX_MS):
+            if not hp.KEEPALIVE_MIN_MS <= ms <= hp.KEEPALIVE_MAX_MS:  # 0 (off) is refused too
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
             self.keepalive_ms = ms
             return self._ack(r, hp.RES_OK, 0)
@@ -537,7 +546,7 @@ class Stimulator:
             k += 1
         if not lim[0] <= i0 <= lim[1]:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-        if not lim[2] <= t0 <= lim[3]:
+        if not (lim[2] <= t0 <= lim[3] and t0 >= hp.T_FLOOR_US):
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if i0 * t0 > lim[4]:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
@@ -573,7 +582,7 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
         if not 1 <= t_max <= self.hard_t:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
-        if not 1 <= t_min <= t_max:
+        if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
         if not i_min * t_min <= q_max <= self.hard_q:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)

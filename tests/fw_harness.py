@@ -17,12 +17,12 @@ import sensation_core as sc
 import stim, board_sim, sim_electrode
 from board_sim import SimBoard, VirtualClock, MemoryUSB
 
-def make(scenario="steady", n=2, start=0, seed=1, keep=True, rate=50):
+def make(scenario="steady", n=2, start=0, seed=1, keep=True, rate=50, keepalive_ms=0):
     clock = VirtualClock(start)
     usb = MemoryUSB(keep)
     sce = sim_electrode.scenario(scenario)
     board = SimBoard(cfg, clock, sce, n, seed, usb)
-    s = stim.Stimulator(board, clock, cfg, n, rate)
+    s = stim.Stimulator(board, clock, cfg, n, rate, keepalive_ms)
     return s, board, usb, clock
 
 def command(s, rep):

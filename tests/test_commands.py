@@ -74,7 +74,7 @@ def test_every_command_round_trips(dev):
         (c.set_skin(500, 36045, 14000), "skin: not allowed while armed (byte 2)"),
         (c.calibrate(1000, 1000, -1670, 186000), "calibrate: not allowed while armed (byte 2)"),
         (c.keepalive(500), "keepalive: ok"),
-        (c.keepalive(0), "keepalive: ok"),
+        (c.keepalive(10000), "keepalive: ok"),
         (c.disarm(0), "disarm: ok"),
         (c.disarm(), "disarm: ok"),
     ]
@@ -91,6 +91,25 @@ def test_every_command_round_trips(dev):
     assert (cal.i0_ua, cal.t0_us, cal.x_star_ohm, cal.y_star_pc) == (1200, 900, -1000, 0)
 
 
+class RawCommands:
+    """The wire builders without the host's range checks: what a buggy or hostile host could send."""
+
+    def set_limits(self, *a):
+        return bytes(hp.cmd_set_limits(bytearray(64), *a))
+
+    def set_mode(self, mode, rate_hz=0):
+        return bytes(hp.cmd_set_mode(bytearray(64), mode, rate_hz))
+
+    def keepalive(self, ms):
+        return bytes(hp.cmd_keepalive(bytearray(64), ms))
+
+    def calibrate(self, *a, ch=hp.CH_ALL):
+        return bytes(hp.cmd_calibrate(bytearray(64), ch, *a))
+
+    def set_skin(self, *a, ch=hp.CH_ALL):
+        return bytes(hp.cmd_set_skin(bytearray(64), ch, *a))
+
+
 @pytest.mark.parametrize(
     "build, detail",
     [
@@ -102,6 +121,10 @@ def test_every_command_round_trips(dev):
         (lambda c: c.set_mode(sc.MODE_AKHTAR, 101), hp.O_ARG + 1),
         (lambda c: c.set_mode(sc.MODE_AKHTAR, 9), hp.O_ARG + 1),
         (lambda c: c.keepalive(20), hp.O_ARG),
+        (lambda c: c.keepalive(0), hp.O_ARG),  # keep-alive cannot be switched off
+        (lambda c: c.keepalive(hp.KEEPALIVE_MAX_MS + 1), hp.O_ARG),
+        (lambda c: c.set_limits(500, 8000, hp.T_FLOOR_US - 1, 4000, 8_000_000), hp.O_ARG + 4),
+        (lambda c: c.set_limits(500, 8000, 1, 4000, 8_000_000), hp.O_ARG + 4),
         (lambda c: c.calibrate(50, 1000, -1670, 186000), hp.O_ARG),
         (lambda c: c.calibrate(1000, 1000, 1, 0), hp.O_ARG + 4),
         (lambda c: c.calibrate(1000, 1000, -1670, 1_000_000), hp.O_ARG + 8),
@@ -114,7 +137,7 @@ def test_every_command_round_trips(dev):
     ],
 )
 def test_out_of_range_changes_nothing(dev, build, detail):
-    ack, before, after = dev.send(build(Commands()))
+    ack, before, after = dev.send(build(RawCommands()))
     assert ack.result == hp.RES_OUT_OF_RANGE and ack.detail == detail
     assert before == after
 

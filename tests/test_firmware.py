@@ -270,3 +270,62 @@ def test_bad_scenario_csv_names_the_line(tmp_path, text, words):
     p = subprocess.run([tool("micropython"), str(FIRMWARE / "main.py"), "--scenario", str(f)], capture_output=True,
                        env={"MICROPYPATH": f"{SHARED}:{FIRMWARE}"}, timeout=60)
     assert p.returncode == 2 and words in p.stderr.decode(), p.stderr
+
+
+def test_keepalive_is_on_by_default_and_cannot_be_switched_off():
+    """The board's own default (no keepalive_ms given): an armed channel stops within
+    KEEPALIVE_DEFAULT_MS of the host's last command; keep-alive 0 (what a u16 wrap of
+    65536 puts on the wire) is refused and changes nothing."""
+    _, res, _ = run_fw("""
+        clock = VirtualClock(0)
+        usb = MemoryUSB(True)
+        board = SimBoard(cfg, clock, sim_electrode.scenario("steady"), 2, 1, usb)
+        s = stim.Stimulator(board, clock, cfg, 2, 50)
+        default = s.keepalive_ms
+        start(s)
+        off = apply(s, hp.cmd_keepalive(bytearray(64), 0))
+        after_off = s.keepalive_ms
+        s.run(10)
+        alive = [c.armed for c in s.chans]
+        s.run(60)
+        bad = []
+        for v in (-1, 49, 10001):
+            try:
+                stim.Stimulator(board, clock, cfg, 2, 50, v)
+            except ValueError:
+                bad.append(v)
+        result(default=default, off=off, after_off=after_off, alive=alive, stop=[c.stop for c in s.chans],
+               pulses=board.pulses, bad=bad)
+    """)
+    r = res[0]
+    assert r["default"] == hp.KEEPALIVE_DEFAULT_MS == 1000
+    assert r["off"] == hp.RES_OUT_OF_RANGE and r["after_off"] == 1000
+    assert r["alive"] == [True, True]
+    assert r["stop"] == [hp.STOP_KEEPALIVE] * 2
+    # the host's last command was the refused keep-alive at t = 0: the frames at
+    # 0, 20, ..., 1000 ms fire (51 pulses, the last one starting 1 s after it), then none
+    assert r["pulses"] == [51, 51]
+    assert r["bad"] == [-1, 49, 10001]
+
+
+def test_a_pulse_below_the_t_floor_is_never_fired():
+    """Whatever put a T below T_FLOOR_US into a channel, the last check before the
+    gate opens latches the channel instead of firing (the PIO would be fed t - 2)."""
+    _, res, _ = run_fw("""
+        s, board, usb, clock = make("steady", n=1)
+        start(s)
+        s.run(3)
+        before = board.pulses[0]
+        fired = []
+        fire = board.fire
+        def spy(ch, t):
+            fired.append(t)
+            return fire(ch, t)
+        board.fire = spy
+        s.chans[0].t = hp.T_FLOOR_US - 1
+        s.run(2)
+        result(before=before, after=board.pulses[0], fired=fired, stop=s.chans[0].stop, armed=s.chans[0].armed)
+    """)
+    r = res[0]
+    assert r["after"] == r["before"] and r["fired"] == []
+    assert r["stop"] == hp.STOP_LIMIT and not r["armed"]
