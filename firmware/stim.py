@@ -62,7 +62,7 @@ class Channel:
 class Stimulator:
     """The on-device loop. `board` is the hardware, `clock` the tick source."""
 
-    def __init__(self, board, clock, cfg, n_channels=None, rate_hz=None):
+    def __init__(self, board, clock, cfg, n_channels=None, rate_hz=None, keepalive_ms=None):
         self.board = board
         self.clock = clock
         self.hard_i = cfg.HARD_I_MAX_UA
@@ -93,7 +93,7 @@ class Stimulator:
         self.overruns = 0
         self.loop_us = 0
         self.frame_t = 0
-        self.keepalive_ms = 0
+        self.keepalive_ms = 0 if keepalive_ms is None else keepalive_ms  # (host helper: minimal; the integrator sets the default)
         self.last_host = clock.ticks_us()
         self.tx = bytearray(hp.REPORT_LEN)
         self.rx = bytearray(hp.REPORT_LEN)
