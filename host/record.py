@@ -103,11 +103,16 @@ def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, lis
         if len(cells) != len(header):
             what = "truncated" if n == len(lines) and len(cells) < len(header) else "malformed"
             raise RecordingError(f"{path} line {n}: {what} row ({len(cells)} of {len(header)} columns)")
-        try:
-            rows.append({h: int(c) for h, c in zip(header, cells)})
-        except ValueError:
-            bad = next(h for h, c in zip(header, cells) if not c.strip().lstrip("-").isdigit())
-            raise RecordingError(f"{path} line {n}: column {bad} is not a whole number") from None
+        row = {}
+        for h, c in zip(header, cells):
+            c = c.strip()
+            if not c.lstrip("-").isdigit() or c.count("-") > 1:
+                raise RecordingError(f"{path} line {n}: column {h} is not a whole number")
+            if len(c) > 11 or not -2**32 < int(c) < 2**32:
+                raise RecordingError(f"{path} line {n}: column {h} = {c[:12]}{'...' if len(c) > 12 else ''} "
+                                     "out of range (a 32-bit field)")
+            row[h] = int(c)
+        rows.append(row)
     if not rows:
         raise RecordingError(f"{path}: no pulses recorded" + (f" (cut at line {cut})" if cut else ""))
     if cut:
