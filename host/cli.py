@@ -202,7 +202,7 @@ def cmd_arm(a) -> int:
             pass
         for c, why in sorted(stopped.items()):
             say(f"  ch{c}: {STOP_WORDS.get(why, why)}")
-        say(f"{a.device}: disarmed")
+        say(_disarm_words(d, a.device))
     return 1 if any(w not in (hp.STOP_DISARMED, hp.STOP_NONE) for w in stopped.values()) else 0
 
 
@@ -312,6 +312,12 @@ def device_meta(d: Device, url: str) -> dict:
     return meta
 
 
+def _disarm_words(d: Device, url: str) -> str:
+    if d.disarmed:
+        return f"{url}: disarmed"
+    return f"{url}: could not confirm the DISARM (device gone?); it stops by itself after its keep-alive timeout"
+
+
 def cmd_record(a) -> int:
     """Telemetry to a CSV streamed as it comes (flushed every second: a killed
     recording keeps all but its last second); the device is kept alive while
@@ -347,6 +353,7 @@ def cmd_record(a) -> int:
         if sys.stderr.isatty():
             print(file=sys.stderr)
         say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost)")
+        say(_disarm_words(d, a.device))
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
             return 1
@@ -364,6 +371,7 @@ def cmd_monitor(a) -> int:
         d = Device(t)
         t_end = time.monotonic() + a.seconds if a.seconds else None
         next_draw = 0.0
+        lost = None
         try:
             with d.live(arm=hp.CH_ALL if a.arm else None):  # keep-alive; DISARM however it ends
                 while t_end is None or time.monotonic() < t_end:
@@ -381,13 +389,16 @@ def cmd_monitor(a) -> int:
                         if tty:
                             sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
                             sys.stdout.flush()
-            if not tty:
-                say(state.render(a.device, d.lost))
         except KeyboardInterrupt:
             pass
         except Disconnected as e:
+            lost = e
+        if not tty or lost:
             say(state.render(a.device, d.lost))
-            print(f"steadytouch: device lost: {e}", file=sys.stderr)
+        if d.disarmed is not None:
+            say(_disarm_words(d, a.device))
+        if lost:
+            print(f"steadytouch: device lost: {lost}", file=sys.stderr)
             return 1
     return 0
 

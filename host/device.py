@@ -40,6 +40,7 @@ class Device:
         self.ka_ms = 0  # host keep-alive: off until keep_alive()
         self._ka_every_s = 0.0
         self._last_write = time.monotonic()
+        self.disarmed: bool | None = None  # after live(): whether the closing DISARM was acknowledged
 
     def _write(self, report: bytes) -> None:
         self.t.write(report)
@@ -75,7 +76,7 @@ class Device:
                 self.arm(arm)
             yield self
         finally:
-            self.safe_disarm()
+            self.disarmed = self.safe_disarm()
 
     def _decode(self, raw: bytes):
         rep = decode(raw)
