@@ -46,10 +46,16 @@ class Device:
         self.t.write(report)
         self._last_write = time.monotonic()
 
-    def _tick(self) -> None:
-        """Send a KEEPALIVE if it is due (its ack is read like any report)."""
-        if self._ka_every_s and time.monotonic() - self._last_write >= self._ka_every_s:
+    def _tick(self) -> float:
+        """Send a KEEPALIVE if it is due (its ack is read like any report); return the
+        seconds until the next one is due (inf: keep-alive off)."""
+        if not self._ka_every_s:
+            return float("inf")
+        due = self._last_write + self._ka_every_s - time.monotonic()
+        if due <= 0.001:
             self._write(self.cmds.keepalive(self.ka_ms))
+            due = self._ka_every_s
+        return due
 
     def keep_alive(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS) -> None:
         """Set the device's keep-alive timeout and keep it fed from now on (every timeout/4)."""
@@ -93,11 +99,11 @@ class Device:
             return self._pending.popleft()
         deadline = time.monotonic() + timeout_s
         while True:
-            self._tick()
+            due = self._tick()
             left = deadline - time.monotonic()
             if left <= 0:
                 return None
-            raw = self.t.read(min(left, self._ka_every_s) if self._ka_every_s else left)
+            raw = self.t.read(min(left, due))
             if raw is None:
                 continue
             try:
@@ -111,11 +117,11 @@ class Device:
         name = COMMAND_WORDS.get(report[0], f"0x{report[0]:02x}")
         deadline = time.monotonic() + timeout_s
         while True:
-            self._tick()
+            due = self._tick()
             left = deadline - time.monotonic()
             if left <= 0:
                 raise DeviceError(f"no answer to '{name}' within {timeout_s:g} s: is the device running?")
-            raw = self.t.read(min(left, 0.2))
+            raw = self.t.read(min(left, 0.2, due))
             if raw is None:
                 continue
             rep = self._decode(raw)

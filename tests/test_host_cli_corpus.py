@@ -180,3 +180,22 @@ def test_audit_names_the_row_of_a_value_the_core_refuses(corpus, tmp_path, capsy
     assert main(["audit", str(f)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "mode99.csv: data row 2: mode=99 out of range" in err[0], err
+
+
+def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
+    import steadytouch.cli as cli
+
+    calls = []
+    real = cli.run_firmware
+
+    def fake_run(*a, **k):
+        calls.append(a)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # Ctrl-C while the second mode runs
+        return real(*a, **k)
+
+    monkeypatch.setattr(cli, "run_firmware", fake_run)
+    out = tmp_path / "out"
+    assert main(["sim", "gel-step", "--out", str(out), "--no-plot"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert len(calls) == 2 and list(out.iterdir()) == []  # the first mode's CSV was not left behind

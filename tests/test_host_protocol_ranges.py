@@ -209,3 +209,49 @@ def test_ack_result_and_report_type_are_checked():
     b[0] = 9
     with pytest.raises(ProtocolError, match="type=0x09"):
         decode(bytes(b))
+
+
+def test_every_report_the_firmware_sends_decodes():
+    """Electrode off on 4 channels in every mode, and an extreme calibration: nothing is refused."""
+    from steadytouch.simrun import Calib, run_firmware
+
+    for mode in ("fast", "open", "pwlinear"):
+        reps = run_firmware("off", mode, Calib(), channels=4, frames=300)  # decodes every report
+        assert {r.stop for r in reps if isinstance(r, Telemetry)} == {hp.STOP_NONE, hp.STOP_ELECTRODE_OFF}
+    reps = run_firmware("peel", "akhtar", Calib(10000, 1000, sc.X_STAR_MIN_OHM, 0), channels=1, frames=300)
+    assert all(within_documented_ranges(r) for r in reps)
+
+
+class FakeClockTransport:
+    """Reads time out after advancing a fake clock; writes are logged with their time."""
+
+    def __init__(self, clock):
+        self.clock = clock
+        self.writes = []
+
+    def write(self, report):
+        self.writes.append((self.clock[0], report[0]))
+
+    def read(self, timeout_s):
+        self.clock[0] += timeout_s
+        return None
+
+
+def test_keepalive_goes_out_every_quarter_timeout_from_the_read_loop(monkeypatch):
+    import steadytouch.device as devmod
+
+    clock = [0.0]
+    monkeypatch.setattr(devmod.time, "monotonic", lambda: clock[0])
+    t = FakeClockTransport(clock)
+    d = Device(t)
+    monkeypatch.setattr(d, "keepalive", lambda ms: None)  # its ack is not under test here
+    d.keep_alive(1000)
+    for timeout in (0.05, 0.5, 3.0, 0.01, 10.0):
+        d.read(timeout)
+    sent = [w for w in t.writes if w[1] == hp.CMD_KEEPALIVE]
+    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
+    assert len(sent) > 40 and max(gaps) <= 0.25 + 1e-9, gaps
+    assert d.safe_disarm(timeout_s=0.1) is False  # nobody answers: reported, not raised
+    n = len(t.writes)
+    d.read(5.0)
+    assert len(t.writes) == n  # after the DISARM no more keep-alives
