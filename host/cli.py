@@ -192,8 +192,9 @@ def cmd_arm(a) -> int:
         t_end = time.monotonic() + a.seconds if a.seconds else None
         try:
             with d.live(arm=ch):
-                say(f"{a.device}: arm: ok; stimulating while this runs (Ctrl-C disarms; the device stops by itself "
-                    f"{d.ka_ms} ms after the host goes silent)")
+                why = (f"the device stops by itself {d.ka_ms} ms after the host goes silent" if d.ka_ms
+                       else "keep-alive off: a virtual-clock simulation")
+                say(f"{a.device}: arm: ok; stimulating while this runs (Ctrl-C disarms; {why})")
                 while (t_end is None or time.monotonic() < t_end) and not chans <= set(stopped):
                     rep = d.read(0.25)
                     if isinstance(rep, Telemetry) and rep.channel in chans and not rep.armed:
@@ -267,10 +268,24 @@ def cmd_calibrate(a) -> int:
                          + " (or --from calibration.json)")
     _precheck("calibrate", vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
     with open_transport(a.device) as t:
-        ack = Device(t).calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
+        d = Device(t)
+        _within_soft_limits(d.info(), vals["i0_ua"], vals["t0_us"])
+        ack = d.calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
         say(f"{a.device}: {ack.words()} (I0 {vals['i0_ua']} uA, T0 {vals['t0_us']} us, "
             f"x* {vals['x_star_ohm']} ohm, y* {vals['y_star_pc']} pC; Rp0 is measured on the first pulse after arm)")
     return 0
+
+
+def _within_soft_limits(i: Info, i0_ua: int, t0_us: int) -> None:
+    """The device's own soft limits (read back from it), checked before the calibration is sent."""
+    if not i.i_min_ua <= i0_ua <= i.i_max_ua:
+        raise ValueError(f"i0_ua={i0_ua} out of range: the device's soft limits are {i.i_min_ua}..{i.i_max_ua} uA "
+                         "(`steadytouch limits` changes them, within the board's hard limits)")
+    if not i.t_min_us <= t0_us <= i.t_max_us:
+        raise ValueError(f"t0_us={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us "
+                         "(`steadytouch limits` changes them)")
+    if i0_ua * t0_us > i.q_max_pc:
+        raise ValueError(f"i0_ua*t0_us={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} pC")
 
 
 def _calibration_json(path) -> dict:
@@ -315,7 +330,8 @@ def device_meta(d: Device, url: str) -> dict:
 def _disarm_words(d: Device, url: str) -> str:
     if d.disarmed:
         return f"{url}: disarmed"
-    return f"{url}: could not confirm the DISARM (device gone?); it stops by itself after its keep-alive timeout"
+    return (f"{url}: could not confirm the DISARM (the device is gone or silent); "
+            "a board stops by itself after its keep-alive timeout")
 
 
 def cmd_record(a) -> int:
@@ -352,7 +368,8 @@ def cmd_record(a) -> int:
             rec.close()
         if sys.stderr.isatty():
             print(file=sys.stderr)
-        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost)")
+        bad = f", {d.bad} undecodable reports skipped" if d.bad else ""
+        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost{bad})")
         say(_disarm_words(d, a.device))
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)

@@ -76,7 +76,8 @@ class Device:
     def live(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS, arm: int | None = None):
         """Keep the device alive while the block runs (arm channel `arm` first if
         given); DISARM on any exit: normal, error, Ctrl-C or SIGTERM (cli.main)."""
-        self.keep_alive(timeout_ms)
+        if self.t.realtime:
+            self.keep_alive(timeout_ms)
         try:
             if arm is not None:
                 self.arm(arm)

@@ -36,6 +36,9 @@ class Disconnected(TransportError):
 
 class Transport:
     url = ""
+    # False for a simulated device on its virtual clock (keep-alive off there: its
+    # time runs far faster than a host can answer); Device.live() then sends none
+    realtime = True
 
     def read(self, timeout_s: float) -> bytes | None:
         raise NotImplementedError
@@ -117,6 +120,7 @@ class SimTransport(Transport):
         from .simrun import FIRMWARE, micropython_exe, vm_popen
 
         self.url = f"sim://{scenario}"
+        self.realtime = realtime
         args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--channels", str(channels),
                 "--seed", str(seed), "--mode", mode, "--exit-on-eof"]
         if realtime:

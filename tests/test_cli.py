@@ -120,7 +120,7 @@ def test_device_commands_over_sim():
     p = run("calibrate", "--device", url, "--i0-ua", "50000", "--t0-us", "1000", "--x-star-ohm", "-1670", "--y-star-pc", "0")
     assert p.returncode == 2 and "i0_ua=50000 out of range: the device accepts 1..20000 uA" in p.stderr  # the host's check
     p = run("calibrate", "--device", url, "--i0-ua", "15000", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0")
-    assert p.returncode == 2 and "calibrate: value out of range" in p.stderr  # the board's (hard limit 10 mA)
+    assert p.returncode == 2 and "i0_ua=15000 out of range: the device's soft limits are 500..10000 uA" in p.stderr
     p = run("calibrate", "--device", url, "--i0-ua", "1000")
     assert p.returncode == 2 and "calibrate needs --t0-us, --x-star-ohm, --y-star-pc" in p.stderr
     p = run("mode", "open", "--rate-hz", "300", "--device", url)

@@ -199,3 +199,15 @@ def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
     assert main(["sim", "gel-step", "--out", str(out), "--no-plot"]) == 130
     assert "interrupted" in capsys.readouterr().err
     assert len(calls) == 2 and list(out.iterdir()) == []  # the first mode's CSV was not left behind
+
+
+@pytest.mark.parametrize("url, words", [
+    ("sim://steady?channels=9", "--channels=9 out of range [1, 4]"),
+    ("sim://steady?channels=x", "channels, seed and frames take whole numbers"),
+    ("sim://steady?mode=bogus", "mode is akhtar, fast, open"),
+    ("tcp://nowhere", "unknown device"),
+])
+def test_bad_device_urls_are_one_line(url, words, capsys):
+    assert main(["info", "--device", url]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
