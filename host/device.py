@@ -12,6 +12,8 @@ run: keep-alive on, DISARM on the way out whatever ends it."""
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from collections import deque
 from contextlib import contextmanager
@@ -66,11 +68,18 @@ class Device:
     def safe_disarm(self, timeout_s: float = 1.0) -> bool:
         """DISARM every channel on the way out; False if the device could not be told."""
         self._ka_every_s = 0.0
+        # a second Ctrl-C / SIGTERM waits until the DISARM is out (at most timeout_s), then acts
+        stoppers = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+        blocked = hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread()
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, stoppers) if blocked else None
         try:
             self.command(self.cmds.disarm(), timeout_s=timeout_s)
             return True
         except (DeviceError, TransportError, ProtocolError):
             return False
+        finally:
+            if blocked:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
     @contextmanager
     def live(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS, arm: int | None = None):
@@ -83,7 +92,11 @@ class Device:
                 self.arm(arm)
             yield self
         finally:
-            self.disarmed = self.safe_disarm()
+            try:
+                self.disarmed = self.safe_disarm()
+            except KeyboardInterrupt:  # a second Ctrl-C that came in before the signals were blocked
+                self.disarmed = self.safe_disarm()
+                raise
 
     def _decode(self, raw: bytes):
         rep = decode(raw)

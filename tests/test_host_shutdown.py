@@ -134,3 +134,18 @@ def test_a_silent_host_is_stopped_by_the_keepalive_within_its_timeout():
         print(f"host silent -> last pulse after {gap_ms:.0f} ms (keep-alive 200 ms)")
         assert gap_ms <= 200 + 2 * 1000 / pulses[-1].rate_hz  # the timeout, a frame or two late (frame grid)
         assert all(not r.armed for r in stops)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
+def test_a_second_ctrl_c_still_lets_the_disarm_out(tmp_path):
+    """Two SIGINTs in quick succession: the DISARM is still sent before the CLI exits."""
+    out = tmp_path / "rec.csv"
+    p, kids = start(["record", str(out), "--device", f"sim://steady?{AUTO}"], out)
+    p.send_signal(signal.SIGINT)
+    time.sleep(0.002)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=20)
+    assert "Traceback" not in stderr and p.returncode in (0, 130), stderr
+    assert f"sim://steady?{AUTO}: disarmed" in stdout, stdout + stderr
+    assert not any(alive(k) for k in kids)
+    assert read_recording(out, allow_cut=True)[1]
