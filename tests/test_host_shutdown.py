@@ -5,7 +5,6 @@ clean, and the simulated device never outlives its host. Also the keep-alive:
 a host that goes silent (alive but stalled) stops the device within its
 timeout. Real processes: these are the only tests here that spawn the CLI."""
 
-import os
 import signal
 import subprocess
 import sys
