@@ -41,15 +41,26 @@ class VirtualClock:
 
 
 class RealClock:
-    """The VM's own tick source (real time)."""
+    """The VM's own tick source (real time), wrapped at 2**bits like the rp2's
+    ticks_us (the unix port's own ticks wrap only at 2**62; the report's
+    time_us field and the host count on 30 bits)."""
 
-    def __init__(self):
+    def __init__(self, bits=30):
         import time
 
-        self.ticks_us = time.ticks_us
-        self.ticks_add = time.ticks_add
-        self.ticks_diff = time.ticks_diff
+        self.mask = (1 << bits) - 1
+        self.half = 1 << (bits - 1)
+        self._ticks = time.ticks_us
         self.sleep_us = time.sleep_us
+
+    def ticks_us(self):
+        return self._ticks() & self.mask
+
+    def ticks_add(self, a, b):
+        return (a + b) & self.mask
+
+    def ticks_diff(self, a, b):
+        return ((a - b + self.half) & self.mask) - self.half
 
     def advance(self, us):
         pass  # real time passes by itself

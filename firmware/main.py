@@ -5,6 +5,14 @@
 #   micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels N]
 #       [--rate HZ] [--frames N] [--seed S] [--realtime] [--start-us T]
 #       [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]
+#       [--keepalive-ms MS] [--exit-on-eof]
+# Host loss in the VM: with --exit-on-eof the simulated device stops every
+# channel and exits as soon as its stdin closes (the host process is gone);
+# the host also asks the kernel to kill it with its parent (PR_SET_PDEATHSIG).
+# The keep-alive (default hp.KEEPALIVE_DEFAULT_MS, as on the board) counts the
+# simulator's clock: a scripted run with no host on the virtual clock, where
+# time runs faster than any host could answer, passes --keepalive-ms 0 (off;
+# allowed only here on the simulator's command line, never over the wire).
 import sys
 
 import board_config as cfg
@@ -13,12 +21,13 @@ import sensation_core as sc
 import stim
 
 USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels 1-4] [--rate 10-100]"
-         " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]")
+          " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]"
+         " [--keepalive-ms 0|%d-%d] [--exit-on-eof]" % (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
 
 
 MODE_NAMES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
               "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR, "akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST}
-_VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto")
+_VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto", "--keepalive-ms")
 
 
 class UsageError(Exception):
@@ -37,7 +46,8 @@ def _int(opt, s, lo, hi):
 
 def parse(argv):
     o = {"scenario": "peel", "channels": cfg.N_CHANNELS, "rate": cfg.RATE_HZ, "frames": -1, "seed": 1,
-         "realtime": False, "start": 0, "auto": None, "mode": sc.MODE_AKHTAR}
+         "realtime": False, "start": 0, "auto": None, "mode": sc.MODE_AKHTAR,
+         "keepalive_ms": hp.KEEPALIVE_DEFAULT_MS, "exit_on_eof": False}
     k = 0
     while k < len(argv):
         a = argv[k]
@@ -45,6 +55,10 @@ def parse(argv):
             raise UsageError(USAGE)
         if a == "--realtime":
             o["realtime"] = True
+            k += 1
+            continue
+        if a == "--exit-on-eof":
+            o["exit_on_eof"] = True
             k += 1
             continue
         if a not in _VALUED:
@@ -68,6 +82,12 @@ def parse(argv):
             if v not in MODE_NAMES:
                 raise UsageError("--mode must be one of %s, not %r" % (", ".join(MODE_NAMES), v))
             o["mode"] = MODE_NAMES[v]
+        elif a == "--keepalive-ms":
+            ms = _int(a, v, 0, hp.KEEPALIVE_MAX_MS)
+            if ms and ms < hp.KEEPALIVE_MIN_MS:
+                raise UsageError("--keepalive-ms=%d out of range: 0 (off) or [%d, %d]"
+                                 % (ms, hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
+            o["keepalive_ms"] = ms
         elif a == "--auto":
             parts = v.split(",")
             if len(parts) != 4:
@@ -105,17 +125,23 @@ def main_sim(argv):
     clock = board_sim.RealClock() if o["realtime"] else board_sim.VirtualClock(o["start"])
     usb = board_sim.StdioUSB()
     board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb)
-    s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=0)  # host keep-alive: issue 11
+    s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=o["keepalive_ms"])
     if o["auto"]:
         auto_start(s, o, clock.ticks_us())
     frames = o["frames"]
     if frames < 0:
         frames = int(scen.duration_s * s.rate_hz)
+    # real time: one frame per step, so a closed stdin is seen within a frame
+    step = 1 if o["realtime"] else 50
     while frames > 0:
-        chunk = 50 if frames > 50 else frames
+        chunk = step if frames > step else frames
         s.run(chunk)
         usb.flush()
         frames -= chunk
+        if o["exit_on_eof"] and usb.eof:  # the host is gone: stop stimulating, exit
+            s.stop_all(hp.STOP_KEEPALIVE)
+            usb.flush()
+            return 0
     if s.errors:
         sys.stderr.write("firmware error: %r\n" % (s.last_error,))
         return 1

@@ -59,31 +59,48 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
             ctls[ch] = sc.Controller(*lim)
     if not cals:
         raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
+    try:
+        return _replay(rows, ctls, cals)
+    except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
+        raise RecordingError(f"{path}: {e}") from None
+
+
+def _replay(rows, ctls, cals) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     for n, r in enumerate(rows, start=1):
         ch = r["channel"]
         if r["i_ua"] == 0 or ch not in ctls:
             continue  # no pulse this frame
-        c = ctls[ch]
-        c.set_mode(r["mode"])
-        flags = r["flags"]
-        if flags & hp.FLAG_CALIBRATING:
-            i0, t0, x, y = cals[ch]
-            if sc.RP_MIN_OHM <= r["rp_ohm"] <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
-                c.calibrate(i0, t0, r["rp_ohm"], x, y)
-            else:
-                c.stop(sc.ST_RP_LOW if r["rp_ohm"] < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
-        elif not c.calibrated:
+        try:
+            done = _step(ctls[ch], r, cals[ch])
+        except ValueError as e:
+            raise ValueError(f"data row {n}: {e}") from None
+        if not done:
             skipped += 1
             continue
-        elif r["stop"] == hp.STOP_ELECTRODE_OFF:
-            c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range
-        else:
-            c.delivered(r["i_ua"], r["t_us"])
-            c.update(r["rp_ohm"])
         checked += 1
+        c = ctls[ch]
         exp = (c.i_ua, c.t_us)
         got = (r["next_i_ua"], r["next_t_us"])
         if exp != got:
             bad.append(Mismatch(n, r["seq"], ch, exp, got))
     return AuditResult(checked, bad, skipped)
+
+
+def _step(c, r, cal) -> bool:
+    """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet)."""
+    c.set_mode(r["mode"])
+    if r["flags"] & hp.FLAG_CALIBRATING:
+        i0, t0, x, y = cal
+        if sc.RP_MIN_OHM <= r["rp_ohm"] <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
+            c.calibrate(i0, t0, r["rp_ohm"], x, y)
+        else:
+            c.stop(sc.ST_RP_LOW if r["rp_ohm"] < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
+    elif not c.calibrated:
+        return False
+    elif r["stop"] == hp.STOP_ELECTRODE_OFF:
+        c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range
+    else:
+        c.delivered(r["i_ua"], r["t_us"])
+        c.update(r["rp_ohm"])
+    return True

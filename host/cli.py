@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import signal
 import statistics
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import hid_protocol as hp
@@ -15,8 +18,9 @@ import sensation_core as sc
 
 from . import __version__
 from .device import Device, DeviceError
-from .protocol import STOP_WORDS, CalInfo, Info, Telemetry
-from .record import Recorder, RecordingError, read_recording, write_recording
+from .files import FileProblem, Outputs, dump_json
+from .protocol import STOP_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
+from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
 
@@ -27,8 +31,19 @@ MODES = {"akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST, "open": sc.MODE_OPEN_LO
 MODE_WORDS = {v: k for k, v in MODES.items()}
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP: stop like Ctrl-C (the device is disarmed on the way out)."""
+
+
 def say(*a):
     print(*a, flush=True)
+
+
+def _finite(name, v, lo=-math.inf, hi=math.inf):
+    """A float option within [lo, hi] (NaN and infinities refused), else one clear line."""
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ValueError(f"--{name.replace('_', '-')} {v} out of range: a number in [{lo:g}, {hi:g}]")
+    return v
 
 
 # ---------------------------------------------------------------- sim
@@ -68,10 +83,16 @@ def sim_meta(a, cal: Calib, m: str) -> dict:
 
 def cmd_sim(a) -> int:
     keys, duration = scenario_keys(a.scenario)
+    check_calibration(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)  # before the VM starts
     cal = Calib(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    with Outputs() as outputs:  # every file appears only when the whole run succeeded
+        return _sim(a, keys, duration, cal, modes, out, outputs)
+
+
+def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
     runs, files = {}, []
     stem = Path(a.scenario).stem
     for m in modes:
@@ -89,7 +110,7 @@ def cmd_sim(a) -> int:
             raise SimError(f"the device refused: {bad[0].words()}")
         tel = [r for r in reps if isinstance(r, Telemetry)]
         path = out / f"{stem}-{m}.csv"
-        write_recording(path, tel, sim_meta(a, cal, m))
+        write_recording(outputs.path(path), tel, sim_meta(a, cal, m))
         runs[m] = tel
         files.append(path)
         stops = sorted({STOP_WORDS.get(t.stop, str(t.stop)) for t in tel if t.stop != hp.STOP_NONE})
@@ -97,8 +118,10 @@ def cmd_sim(a) -> int:
     if not a.no_plot:
         from .plot import fig5
 
-        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(f)) for m, f in zip(modes, files)]
-        png = fig5(recs, out / f"{stem}.png")
+        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(outputs._files[k][0]))
+                for k, m in enumerate(modes)]
+        png = out / f"{stem}.png"
+        fig5(recs, outputs.path(png))
         say(f"  figure (the paper's Fig. 5 layout) -> {png}")
     say("")
     say("mQ error: |median(measured - target)| over each hold, in uC/kohm (the paper's settle threshold: 2.5e-05);")
@@ -130,8 +153,18 @@ def cmd_info(a) -> int:
     return 0
 
 
+_BUILDERS = {"limits": "set_limits", "mode": "set_mode", "skin": "set_skin", "calibrate": "calibrate",
+             "arm": "arm", "disarm": "disarm"}
+
+
+def _precheck(fn_name, *args):
+    """Build the command once, unsent: an argument out of range is one clear line before the device is opened."""
+    getattr(Commands(), _BUILDERS[fn_name])(*args)
+
+
 def _simple(fn_name, *args_from):
     def run(a) -> int:
+        _precheck(fn_name, *[f(a) for f in args_from])
         with open_transport(a.device) as t:
             d = Device(t)
             ack = getattr(d, fn_name)(*[f(a) for f in args_from])
@@ -145,11 +178,44 @@ def _channel(a):
     return hp.CH_ALL if a.channel is None else a.channel
 
 
+def cmd_arm(a) -> int:
+    """Arm, keep the device alive while this runs, disarm on exit (Ctrl-C, SIGTERM, --seconds,
+    or every armed channel stopped by the device)."""
+    ch = _channel(a)
+    _precheck("arm", ch)
+    _finite("seconds", a.seconds, 0, 1e9)
+    with open_transport(a.device) as t:
+        d = Device(t)
+        n = d.info().n_channels
+        chans = set(range(n)) if ch == hp.CH_ALL else {ch}
+        stopped: dict[int, int] = {}
+        t_end = time.monotonic() + a.seconds if a.seconds else None
+        try:
+            with d.live(arm=ch):
+                why = (f"the device stops by itself {d.ka_ms} ms after the host goes silent" if d.ka_ms
+                       else "keep-alive off: a virtual-clock simulation")
+                say(f"{a.device}: arm: ok; stimulating while this runs (Ctrl-C disarms; {why})")
+                while (t_end is None or time.monotonic() < t_end) and not chans <= set(stopped):
+                    rep = d.read(0.25)
+                    if isinstance(rep, Telemetry) and rep.channel in chans and not rep.armed:
+                        stopped[rep.channel] = rep.stop
+        except KeyboardInterrupt:
+            pass
+        for c, why in sorted(stopped.items()):
+            say(f"  ch{c}: {STOP_WORDS.get(why, why)}")
+        say(_disarm_words(d, a.device))
+    return 1 if any(w not in (hp.STOP_DISARMED, hp.STOP_NONE) for w in stopped.values()) else 0
+
+
 def cmd_calibrate_interactive(a) -> int:
     from . import fit as F
     from .participant import write_rows
     from .session import KeyboardResponder, Session, SimResponder, Stopped
 
+    _finite("present_s", a.present_s, 0.05, 60)
+    for k in ("weak_ua", "strong_ua"):
+        if not 1 <= getattr(a, k) <= sc.I_LIMIT_UA:
+            raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
     with open_transport(a.device) as t:
@@ -157,16 +223,19 @@ def cmd_calibrate_interactive(a) -> int:
         s = Session(d, responder, channel=a.channel or 0, present_s=a.present_s)
         say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
         try:
-            res = s.run({"weak": a.weak_ua, "strong": a.strong_ua})
+            with d.live():  # keep-alive while presenting; DISARM however the session ends
+                res = s.run({"weak": a.weak_ua, "strong": a.strong_ua})
         except Stopped:
             say("stopped: the device is disarmed; nothing was sent")
             return 1
         out.mkdir(parents=True, exist_ok=True)
         data = out / "session.csv"
-        write_rows(data, res.rows)
+        with Outputs() as o:  # the measured session is kept even if the fit fails
+            write_rows(o.path(data), res.rows)
         fitres = F.fit(F.load(data), device_range=True)
         cal = dict(fitres.calibration(), source=str(data))
-        (out / "calibration.json").write_text(json.dumps(cal, indent=1) + "\n")
+        with Outputs() as o:
+            o.path(out / "calibration.json").write_text(dump_json(cal, "calibration") + "\n")
         say(f"{res.presentations} presentations; data -> {data}")
         say(f"fit: x* = {fitres.x_star_ohm:.0f} ohm, y* = {fitres.y_star_pc:.0f} pC, mean r2 Q-Rp {fitres.mean_r2_q:.3f}, "
             f"Ep-Rp {fitres.mean_r2_ep:.3f} -> {out / 'calibration.json'}")
@@ -176,6 +245,7 @@ def cmd_calibrate_interactive(a) -> int:
             f"send the calibration (I0 {op['i_ua']} uA, T0 {op['t_us']} us, x* {cal['x_star_ohm']}, y* {cal['y_star_pc']})? [y/N] ")
             .strip().lower() == "y")
         if send:
+            check_calibration(op["i_ua"], op["t_us"], cal["x_star_ohm"], cal["y_star_pc"])
             d.mode(sc.MODE_AKHTAR)
             ack = d.calibrate(op["i_ua"], op["t_us"], cal["x_star_ohm"], cal["y_star_pc"], hp.CH_ALL)
             say(f"{a.device}: {ack.words()} (I0 {op['i_ua']} uA, T0 {op['t_us']} us, x* {cal['x_star_ohm']} ohm, "
@@ -188,22 +258,58 @@ def cmd_calibrate(a) -> int:
         return cmd_calibrate_interactive(a)
     vals = {"i0_ua": a.i0_ua, "t0_us": a.t0_us, "x_star_ohm": a.x_star_ohm, "y_star_pc": a.y_star_pc}
     if a.from_file:
-        try:
-            data = json.loads(Path(a.from_file).read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise RecordingError(f"{a.from_file}: not a readable calibration JSON ({e})") from None
+        data = _calibration_json(a.from_file)
         for k in vals:
             if vals[k] is None and k in data:
-                vals[k] = int(round(data[k]))
+                vals[k] = _json_number(a.from_file, data, k, whole=True)
     missing = [k for k, v in vals.items() if v is None]
     if missing:
         raise ValueError("calibrate needs " + ", ".join("--" + k.replace("_", "-") for k in missing)
                          + " (or --from calibration.json)")
+    _precheck("calibrate", vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
     with open_transport(a.device) as t:
-        ack = Device(t).calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
+        d = Device(t)
+        _within_soft_limits(d.info(), vals["i0_ua"], vals["t0_us"])
+        ack = d.calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
         say(f"{a.device}: {ack.words()} (I0 {vals['i0_ua']} uA, T0 {vals['t0_us']} us, "
             f"x* {vals['x_star_ohm']} ohm, y* {vals['y_star_pc']} pC; Rp0 is measured on the first pulse after arm)")
     return 0
+
+
+def _within_soft_limits(i: Info, i0_ua: int, t0_us: int) -> None:
+    """The device's own soft limits (read back from it), checked before the calibration is sent."""
+    if not i.i_min_ua <= i0_ua <= i.i_max_ua:
+        raise ValueError(f"i0_ua={i0_ua} out of range: the device's soft limits are {i.i_min_ua}..{i.i_max_ua} uA "
+                         "(`steadytouch limits` changes them, within the board's hard limits)")
+    if not i.t_min_us <= t0_us <= i.t_max_us:
+        raise ValueError(f"t0_us={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us "
+                         "(`steadytouch limits` changes them)")
+    if i0_ua * t0_us > i.q_max_pc:
+        raise ValueError(f"i0_ua*t0_us={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} pC")
+
+
+def _calibration_json(path) -> dict:
+    from .files import read_text_file
+
+    try:
+        data = json.loads(read_text_file(path, "calibration JSON"))
+    except json.JSONDecodeError as e:
+        raise FileProblem(f"{path}: not a readable calibration JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise FileProblem(f"{path}: a calibration JSON is an object with x_star_ohm and y_star_pc, "
+                          f"not a {type(data).__name__}")
+    return data
+
+
+def _json_number(path, data: dict, key: str, whole=False):
+    v = data[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise FileProblem(f"{path}: {key} must be a finite number, not {v!r}")
+    if whole:
+        if abs(v) >= 2**31:
+            raise FileProblem(f"{path}: {key} = {v} out of range (|x| < 2**31)")
+        return int(round(v))
+    return float(v)
 
 
 # ------------------------------------------------------------ record / monitor
@@ -221,8 +327,19 @@ def device_meta(d: Device, url: str) -> dict:
     return meta
 
 
+def _disarm_words(d: Device, url: str) -> str:
+    if d.disarmed:
+        return f"{url}: disarmed"
+    return (f"{url}: could not confirm the DISARM (the device is gone or silent); "
+            "a board stops by itself after its keep-alive timeout")
+
+
 def cmd_record(a) -> int:
+    """Telemetry to a CSV streamed as it comes (flushed every second: a killed
+    recording keeps all but its last second); the device is kept alive while
+    recording and disarmed at the end, however the recording ends."""
     out = Path(a.file)
+    _finite("seconds", a.seconds, 0, 1e9)
     with open_transport(a.device) as t:
         d = Device(t)
         meta = device_meta(d, a.device)
@@ -232,25 +349,28 @@ def cmd_record(a) -> int:
         last = 0.0
         lost_device = None
         try:
-            while t_end is None or time.monotonic() < t_end:
-                try:
-                    rep = d.read(0.5)
-                except Disconnected as e:
-                    lost_device = e
-                    break
-                if isinstance(rep, Telemetry):
-                    rec.write(rep)
-                now = time.monotonic()
-                if now - last >= 1.0 and sys.stderr.isatty():
-                    last = now
-                    print(f"\r  {rec.rows} pulses, {d.lost} reports lost", end="", file=sys.stderr, flush=True)
+            with d.live(arm=hp.CH_ALL if a.arm else None):
+                while t_end is None or time.monotonic() < t_end:
+                    try:
+                        rep = d.read(0.5)
+                    except Disconnected as e:
+                        lost_device = e
+                        break
+                    if isinstance(rep, Telemetry):
+                        rec.write(rep)
+                    now = time.monotonic()
+                    if now - last >= 1.0 and sys.stderr.isatty():
+                        last = now
+                        print(f"\r  {rec.rows} pulses, {d.lost} reports lost", end="", file=sys.stderr, flush=True)
         except KeyboardInterrupt:
             pass
         finally:
             rec.close()
         if sys.stderr.isatty():
             print(file=sys.stderr)
-        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost)")
+        bad = f", {d.bad} undecodable reports skipped" if d.bad else ""
+        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost{bad})")
+        say(_disarm_words(d, a.device))
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
             return 1
@@ -263,33 +383,39 @@ def cmd_monitor(a) -> int:
     state = MonitorState()
     tty = sys.stdout.isatty()
     live = LivePlot() if a.plot else None
+    _finite("seconds", a.seconds, 0, 1e9)
     with open_transport(a.device) as t:
         d = Device(t)
         t_end = time.monotonic() + a.seconds if a.seconds else None
         next_draw = 0.0
+        lost = None
         try:
-            while t_end is None or time.monotonic() < t_end:
-                rep = d.read(0.05)
-                if isinstance(rep, Telemetry):
-                    state.add(rep)
-                    if live:
-                        live.add(rep)
-                now = time.monotonic()
-                if now >= next_draw:
-                    next_draw = now + 0.1  # 10 screens a second
-                    if live and not live.draw():
-                        break  # the window was closed
-                    screen = state.render(a.device, d.lost)
-                    if tty:
-                        sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
-                        sys.stdout.flush()
-            if not tty:
-                say(state.render(a.device, d.lost))
+            with d.live(arm=hp.CH_ALL if a.arm else None):  # keep-alive; DISARM however it ends
+                while t_end is None or time.monotonic() < t_end:
+                    rep = d.read(0.05)
+                    if isinstance(rep, Telemetry):
+                        state.add(rep)
+                        if live:
+                            live.add(rep)
+                    now = time.monotonic()
+                    if now >= next_draw:
+                        next_draw = now + 0.1  # 10 screens a second
+                        if live and not live.draw():
+                            break  # the window was closed
+                        screen = state.render(a.device, d.lost)
+                        if tty:
+                            sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
+                            sys.stdout.flush()
         except KeyboardInterrupt:
             pass
         except Disconnected as e:
+            lost = e
+        if not tty or lost:
             say(state.render(a.device, d.lost))
-            print(f"steadytouch: device lost: {e}", file=sys.stderr)
+        if d.disarmed is not None:
+            say(_disarm_words(d, a.device))
+        if lost:
+            print(f"steadytouch: device lost: {lost}", file=sys.stderr)
             return 1
     return 0
 
@@ -298,8 +424,10 @@ def cmd_monitor(a) -> int:
 def cmd_audit(a) -> int:
     from .audit import audit
 
-    meta, rows = read_recording(a.file)
+    meta, rows = read_recording(a.file, allow_cut=True)
     r = audit(meta, rows, a.file)
+    if CUT in meta:
+        say(f"{a.file}: cut short at line {meta[CUT]} (an interrupted recording): auditing its {len(rows)} complete rows")
     for m in r.mismatches[:20]:
         say(f"  row {m.line} (seq {m.seq}, ch{m.channel}): device sent I,T = {m.recorded}, the reference gives {m.expected}")
     if len(r.mismatches) > 20:
@@ -316,16 +444,26 @@ def cmd_audit(a) -> int:
 def cmd_plot(a) -> int:
     from .plot import fig5, planes
 
+    if not 0 <= a.channel <= 3:
+        raise ValueError(f"--channel {a.channel} out of range: 0..3")
     recs = []
     for f in a.files:
-        meta, rows = read_recording(f)
+        meta, rows = read_recording(f, allow_cut=True)
         title = {"akhtar": "with the controller", "open": "open loop"}.get(meta.get("mode", ""), meta.get("mode") or Path(f).stem)
         recs.append((title, meta, rows))
+        if not any(r["channel"] == a.channel and r["i_ua"] > 0 for r in rows) and (a.planes or len(a.files) == 1):
+            raise RecordingError(f"{f}: no pulses on channel {a.channel}: nothing to plot")
+    if not any(any(r["channel"] == a.channel and r["i_ua"] > 0 for r in rows) for _, _, rows in recs):
+        raise RecordingError(f"no pulses on channel {a.channel} in any of the recordings: nothing to plot")
     out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
-    say(f"figure -> {fig5(recs, out, a.channel)}")
+    p = out.with_name(out.stem + "-planes.png")
+    with Outputs() as o:
+        fig5(recs, o.path(out), a.channel)
+        if a.planes:
+            planes(recs[0][1], recs[0][2], o.path(p), a.channel)
+    say(f"figure -> {out}")
     if a.planes:
-        p = out.with_name(out.stem + "-planes.png")
-        say(f"planes -> {planes(recs[0][1], recs[0][2], p, a.channel)}")
+        say(f"planes -> {p}")
     return 0
 
 
@@ -390,8 +528,14 @@ def cmd_fit(a) -> int:
     res = F.fit(sets)
     out = Path(a.out)
     cal = dict(res.calibration(), source=str(a.file))
+    q_min = min(float(s.q_pc.min()) for s in sets)
+    if not (sc.X_STAR_MIN_OHM <= cal["x_star_ohm"] <= 0 and 0 <= cal["y_star_pc"] < q_min):
+        raise F.DataError(f"{a.file}: the convergence point (x*, y*) = ({cal['x_star_ohm']} ohm, {cal['y_star_pc']} pC) "
+                          f"is outside what the device accepts (x* in {sc.X_STAR_MIN_OHM}..0 ohm, 0 <= y* < the smallest "
+                          f"Q, {q_min:.0f} pC): these data give no usable calibration")
+    report = dump_json({"calibration": cal, "by_condition": res.by_condition, "per_set": res.per_set}, "fit")
     if a.json:
-        print(json.dumps({"calibration": cal, "by_condition": res.by_condition, "per_set": res.per_set}, indent=1))
+        print(report)
     else:
         say(f"{a.file}: {res.n_sets} participant x condition data sets")
         say(f"convergence point: x* = {res.x_star_ohm:.0f} ohm, y* = {res.y_star_pc:.0f} pC "
@@ -401,8 +545,10 @@ def cmd_fit(a) -> int:
         for line in F.table(res):
             say("  " + line)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "calibration.json").write_text(json.dumps(cal, indent=1) + "\n")
-    png = F.figure(sets, res, out / "fit.png")
+    png = out / "fit.png"
+    with Outputs() as o:
+        o.path(out / "calibration.json").write_text(dump_json(cal, "calibration") + "\n")
+        F.figure(sets, res, o.path(png))
     if not a.json:
         say(f"wrote {out / 'calibration.json'} and {png}")
     return 0
@@ -417,6 +563,7 @@ def cmd_skin(a) -> int:
     if m.worst_misfit > 0.02:
         say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
     if a.send:
+        _precheck("skin", *m.args(), _channel(a))
         with open_transport(a.device) as t:
             ack = Device(t).skin(*m.args(), ch=_channel(a))
             say(f"{a.device}: {ack.words()}")
@@ -427,44 +574,61 @@ def cmd_validate(a) -> int:
     from . import fit as F
 
     if a.calibration:
-        try:
-            c = json.loads(Path(a.calibration).read_text())
-            x, y = float(c["x_star_ohm"]), float(c["y_star_pc"])
-        except (OSError, ValueError, KeyError) as e:
-            raise F.DataError(f"{a.calibration}: needs x_star_ohm and y_star_pc ({e})") from None
+        c = _calibration_json(a.calibration)
+        missing = [k for k in ("x_star_ohm", "y_star_pc") if k not in c]
+        if missing:
+            raise F.DataError(f"{a.calibration}: needs x_star_ohm and y_star_pc (missing {', '.join(missing)})")
+        x, y = _json_number(a.calibration, c, "x_star_ohm"), _json_number(a.calibration, c, "y_star_pc")
     else:
         x, y = a.x_star_ohm, a.y_star_pc
+    _finite("x_star_ohm", x, sc.X_STAR_MIN_OHM, 0)
+    _finite("y_star_pc", y, 0, sc.Q_LIMIT_PC)
     sets = F.load(a.file, exp2=True)
     r = F.validate(sets, x, y)
     if a.json:
-        print(json.dumps(r, indent=1))
+        print(dump_json(r, "validate"))
         return 0
     say(f"{a.file}: {len(sets)} trials; the controller's lines from each trial's initial point with "
         f"(x*, y*) = ({x:.0f} ohm, {y:.0f} pC)")
     say(f"mean r2 of the chosen points: Ep-Rp {r['mean_r2_ep']:.3f}, Q-Rp {r['mean_r2_q']:.3f}")
     for c, v in sorted(r["by_condition"].items()):
-        say(f"  {c:<24} n={v['n']:>3}  Ep {v['mean_r2_ep']:.3f} (Z {v['ep']['z']:.2f}, p {v['ep']['p_holm']:.4f})  "
-            f"Q {v['mean_r2_q']:.3f} (Z {v['q']['z']:.2f}, p {v['q']['p_holm']:.4f})")
+        say(f"  {c:<24} n={v['n']:>3}  Ep {v['mean_r2_ep']:.3f} (Z {F._z(v['ep']['z']).strip()}, p {v['ep']['p_holm']:.4f})  "
+            f"Q {v['mean_r2_q']:.3f} (Z {F._z(v['q']['z']).strip()}, p {v['q']['p_holm']:.4f})")
     return 0
 
 
 def cmd_synth(a) -> int:
     from .participant import SimParticipant, write_rows
 
+    if not 1 <= a.participants <= 1000:
+        raise ValueError(f"--participants {a.participants} out of range: 1..1000")
+    if not 0 <= a.seed < 2**32:
+        raise ValueError(f"--seed {a.seed} out of range: 0..{2**32 - 1}")
+    _finite("x_star_ohm", a.x_star_ohm, sc.X_STAR_MIN_OHM, 0)
+    _finite("y_star_pc", a.y_star_pc, 0, 1e6)
+    _finite("rp_noise", a.rp_noise, 0, 0.5)
     sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_rows(out / "exp1.csv", sp.exp1_rows(a.participants))
-    write_rows(out / "exp2.csv", sp.exp2_rows(a.participants))
+    with Outputs() as o:
+        write_rows(o.path(out / "exp1.csv"), sp.exp1_rows(a.participants))
+        write_rows(o.path(out / "exp2.csv"), sp.exp2_rows(a.participants))
     say(f"simulated {a.participants} participants (true x* {a.x_star_ohm} ohm, y* {a.y_star_pc} pC): "
         f"{out / 'exp1.csv'} (Exp. 1), {out / 'exp2.csv'} (Exp. 2)")
     return 0
 
 
 # ------------------------------------------------------------ parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors in one line (and a pointer to --help)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     raw = argparse.RawDescriptionHelpFormatter
-    p = argparse.ArgumentParser(prog="steadytouch", description="Constant-sensation electrotactile stimulation: host tools.")
+    p = _Parser(prog="steadytouch", description="Constant-sensation electrotactile stimulation: host tools.")
     p.add_argument("--version", action="version", version=f"steadytouch {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
@@ -488,15 +652,20 @@ def build_parser() -> argparse.ArgumentParser:
     for k, v in (("--i0-ua", 1000), ("--t0-us", 1000), ("--x-star-ohm", -1670), ("--y-star-pc", 186000)):
         s.add_argument(k, type=int, default=v)
 
-    s = add("monitor", cmd_monitor, "live view of a device's telemetry (10 screens a second)",
-            "  steadytouch monitor\n  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
+    s = add("monitor", cmd_monitor, "live view of a device's telemetry (10 screens a second); keeps the device alive, "
+            "disarms it on exit",
+            "  steadytouch monitor\n  steadytouch monitor --arm --seconds 30\n"
+            "  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated)")
     s.add_argument("--plot", action="store_true", help="also a live plot window (matplotlib; needs a display)")
 
     s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
     s.add_argument("file")
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
+    s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated); "
+                   "the device is kept alive while recording and disarmed at the end")
 
     s = add("audit", cmd_audit, "replay a recording through the host reference; non-zero exit on any mismatch",
             "  steadytouch audit session.csv", device=False)
@@ -510,10 +679,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--channel", type=int, default=0)
     s.add_argument("--planes", action="store_true")
 
-    for name, fn, help in (("arm", "arm", "start stimulating (the first pulse is I0, T0 and measures Rp0)"),
-                           ("disarm", "disarm", "stop stimulating at once")):
-        s = add(name, _simple(fn, _channel), help, f"  steadytouch {name}\n  steadytouch {name} --channel 1")
-        s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
+    s = add("arm", cmd_arm, "stimulate while this runs (the first pulse is I0, T0 and measures Rp0); "
+            "Ctrl-C, SIGTERM or --seconds disarms; the device stops by itself if the host goes silent",
+            "  steadytouch arm\n  steadytouch arm --channel 1 --seconds 60")
+    s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
+    s.add_argument("--seconds", type=float, default=0, help="disarm after this long (default: until Ctrl-C)")
+    s = add("disarm", _simple("disarm", _channel), "stop stimulating at once",
+            "  steadytouch disarm\n  steadytouch disarm --channel 1")
+    s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
 
     s = add("calibrate", cmd_calibrate, "send I0, T0 and the convergence point (x*, y*)",
             "  steadytouch calibrate --i0-ua 1000 --t0-us 1000 --x-star-ohm -1670 --y-star-pc 186000\n"
@@ -545,7 +718,7 @@ def build_parser() -> argparse.ArgumentParser:
             "choose the controller (akhtar: the paper; fast: the Newton variant; open, charge, energy, pwlinear: baselines) and the frame rate",
             "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
     s.add_argument("mode", choices=list(MODES))
-    s.add_argument("--rate-hz", type=int, default=0, help="10-100 (default: unchanged)")
+    s.add_argument("--rate-hz", type=int, default=0, help=f"{hp.RATE_MIN_HZ}-{hp.RATE_MAX_HZ} (default: unchanged)")
 
     add("info", cmd_info, "firmware version, board, limits, mode and each channel's calibration",
         "  steadytouch info\n  steadytouch info --device sim://steady")
@@ -568,7 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
             "  steadytouch skin exp1.csv --send --channel 0 --device hid://1209:0001")
     s.add_argument("file", help="CSV with i_ua, t_us, rp_ohm per pulse (one person, one site)")
     s.add_argument("--send", action="store_true", help="send the fitted model to the device (disarmed)")
-    s.add_argument("--channel", type=int, help="channel (default: all)")
+    s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="channel (default: all)")
     s = add("validate", cmd_validate, "r2 of participant-chosen points against the controller's lines (Exp. 2)",
             "  steadytouch validate exp2.csv --calibration out/calibration.json", device=False)
     s.add_argument("file")
@@ -591,16 +764,36 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
     a = build_parser().parse_args(argv)
+    # SIGTERM and SIGHUP stop like Ctrl-C: every `finally` runs, the device is disarmed
+    old = {}
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+            if sig is not None:
+                old[sig] = signal.signal(sig, _terminate)
     try:
-        return a.func(a)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # degenerate data is an error of its own, below
+            return a.func(a)
     except USER_ERRORS as e:
-        print(f"steadytouch: {e}", file=sys.stderr)
+        print(f"steadytouch: {str(e).splitlines()[0] if str(e) else type(e).__name__}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("steadytouch: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("steadytouch: interrupted", file=sys.stderr)
         return 130
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 if __name__ == "__main__":

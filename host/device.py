@@ -1,15 +1,27 @@
 """A device behind any transport: decoded reports, lost-report counting, and
-commands that wait for their ack (device result codes become DeviceError)."""
+commands that wait for their ack (device result codes become DeviceError).
+
+Keep-alive: the device stops every armed channel when the host has been silent
+for its keep-alive timeout (default 1 s; it cannot be switched off). After
+`keep_alive()`, every `read()` and every command's wait sends a KEEPALIVE
+whenever the host has written nothing for a quarter of that timeout. The sender
+is the thread that reads (a Device belongs to one thread; the transports are
+not shared): a host whose loop stalls (a hung plot, a stopped terminal) goes
+silent and the device stops, which is what the guard is for. `live()` wraps a
+run: keep-alive on, DISARM on the way out whatever ends it."""
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 
 import hid_protocol as hp
 
-from .protocol import COMMAND_WORDS, Ack, CalInfo, Commands, Info, decode
-from .transport import Transport
+from .protocol import COMMAND_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
+from .transport import Transport, TransportError
 
 SEQ_MOD = 1 << 30
 
@@ -26,6 +38,65 @@ class Device:
         self.lost = 0
         self.received = 0
         self._pending: deque = deque()
+        self.bad = 0  # reports that did not decode (skipped while streaming)
+        self.ka_ms = 0  # host keep-alive: off until keep_alive()
+        self._ka_every_s = 0.0
+        self._last_write = time.monotonic()
+        self.disarmed: bool | None = None  # after live(): whether the closing DISARM was acknowledged
+
+    def _write(self, report: bytes) -> None:
+        self.t.write(report)
+        self._last_write = time.monotonic()
+
+    def _tick(self) -> float:
+        """Send a KEEPALIVE if it is due (its ack is read like any report); return the
+        seconds until the next one is due (inf: keep-alive off)."""
+        if not self._ka_every_s:
+            return float("inf")
+        due = self._last_write + self._ka_every_s - time.monotonic()
+        if due <= 0.001:
+            self._write(self.cmds.keepalive(self.ka_ms))
+            due = self._ka_every_s
+        return due
+
+    def keep_alive(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS) -> None:
+        """Set the device's keep-alive timeout and keep it fed from now on (every timeout/4)."""
+        self.keepalive(timeout_ms)
+        self.ka_ms = timeout_ms
+        self._ka_every_s = timeout_ms / 4000.0
+
+    def safe_disarm(self, timeout_s: float = 1.0) -> bool:
+        """DISARM every channel on the way out; False if the device could not be told."""
+        self._ka_every_s = 0.0
+        # a second Ctrl-C / SIGTERM waits until the DISARM is out (at most timeout_s), then acts
+        stoppers = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+        blocked = hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread()
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, stoppers) if blocked else None
+        try:
+            self.command(self.cmds.disarm(), timeout_s=timeout_s)
+            return True
+        except (DeviceError, TransportError, ProtocolError):
+            return False
+        finally:
+            if blocked:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+    @contextmanager
+    def live(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS, arm: int | None = None):
+        """Keep the device alive while the block runs (arm channel `arm` first if
+        given); DISARM on any exit: normal, error, Ctrl-C or SIGTERM (cli.main)."""
+        if self.t.realtime:
+            self.keep_alive(timeout_ms)
+        try:
+            if arm is not None:
+                self.arm(arm)
+            yield self
+        finally:
+            try:
+                self.disarmed = self.safe_disarm()
+            except KeyboardInterrupt:  # a second Ctrl-C that came in before the signals were blocked
+                self.disarmed = self.safe_disarm()
+                raise
 
     def _decode(self, raw: bytes):
         rep = decode(raw)
@@ -36,22 +107,35 @@ class Device:
         return rep
 
     def read(self, timeout_s: float = 1.0):
-        """The next decoded IN report, or None on timeout."""
+        """The next decoded IN report, or None on timeout. A report that does not
+        decode is counted in `bad` and skipped; keep-alives go out while waiting."""
         if self._pending:
             return self._pending.popleft()
-        raw = self.t.read(timeout_s)
-        return None if raw is None else self._decode(raw)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            due = self._tick()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            raw = self.t.read(min(left, due))
+            if raw is None:
+                continue
+            try:
+                return self._decode(raw)
+            except ProtocolError:
+                self.bad += 1
 
     def command(self, report: bytes, timeout_s: float = 2.0):
         """Send one OUT report; return its Ack/Info; DeviceError if refused or unanswered."""
-        self.t.write(report)
+        self._write(report)
         name = COMMAND_WORDS.get(report[0], f"0x{report[0]:02x}")
         deadline = time.monotonic() + timeout_s
         while True:
+            due = self._tick()
             left = deadline - time.monotonic()
             if left <= 0:
                 raise DeviceError(f"no answer to '{name}' within {timeout_s:g} s: is the device running?")
-            raw = self.t.read(min(left, 0.2))
+            raw = self.t.read(min(left, 0.2, due))
             if raw is None:
                 continue
             rep = self._decode(raw)
@@ -88,5 +172,5 @@ class Device:
     def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
         return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))
 
-    def keepalive(self, timeout_ms=0):
+    def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS):
         return self.command(self.cmds.keepalive(timeout_ms))

@@ -9,13 +9,15 @@ trial and initial). Units: Rp in ohm, Q in pC (= uA*us), Ep in erg.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 R2_THRESHOLD = 0.7
+# what a data file may hold (beyond: a typo or a unit mistake, and the squares overflow)
+RANGES = {"i_ua": (0.0, 100_000.0), "t_us": (0.0, 100_000.0), "rp_ohm": (0.0, 10_000_000.0),
+          "vp_mv": (0.0, 1_000_000.0)}
 ERG_PER_OHM_UA2_US = 1e-18 * 1e7  # ohm * uA^2 * us = 1e-18 J = 1e-11 erg
 
 
@@ -43,23 +45,26 @@ class DataSet:
 
 
 def _num(path, line, col, s, positive=True):
+    if s is None:
+        raise DataError(f"{path} row {line}: column {col} is missing (a short row)")
     try:
         v = float(s)
     except ValueError:
         raise DataError(f"{path} row {line}: column {col} is not a number: {s!r}") from None
     if not np.isfinite(v) or (positive and v <= 0):
         raise DataError(f"{path} row {line}: column {col} must be a positive number, got {s}")
+    lo, hi = RANGES.get(col, (-np.inf, np.inf))
+    if positive and v > hi:
+        raise DataError(f"{path} row {line}: column {col} = {s} out of range (0, {hi:g}]")
     return v
 
 
 def load(path: Path | str, exp2: bool = False) -> list[DataSet]:
     """Read and check a method-of-adjustment file; DataError names the row on any problem."""
+    from .files import csv_rows, read_text_file
+
     path = Path(path)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise DataError(f"{path}: cannot read ({e})") from None
-    rows = list(csv.reader([ln for ln in text.splitlines()]))
+    rows = csv_rows(path, read_text_file(path, "CSV file"))
     if not rows:
         raise DataError(f"{path}: empty file")
     head = [h.strip() for h in rows[0]]
@@ -97,6 +102,11 @@ def load(path: Path | str, exp2: bool = False) -> list[DataSet]:
             raise DataError(f"{path} row {first_line[key]}: participant {key[0]}, condition {key[1]} has a single "
                             "point; a line needs at least 2 (the paper used 11)")
         a = np.array(pts)
+        who = f"{path} row {first_line[key]}: participant {key[0]}, condition {key[1]}" + (f", trial {key[2]}" if exp2 else "")
+        if len(np.unique(a[:, 2])) < 2:
+            raise DataError(f"{who}: every point has the same Rp; a line needs at least 2 different Rp")
+        if len(np.unique(a[:, 0] * a[:, 1])) < 2:
+            raise DataError(f"{who}: every point has the same charge I*T; a line needs at least 2 different Q")
         initial = -1
         if exp2:
             w = np.flatnonzero(a[:, 3] == 1)
@@ -191,7 +201,7 @@ def wilcoxon_holm(groups: dict[str, list[float]], threshold=R2_THRESHOLD) -> dic
     for g, v in groups.items():
         d = np.asarray(v) - threshold
         if len(d) < 2 or np.all(d == 0):
-            res[g] = {"n": len(d), "z": float("nan"), "p": 1.0}
+            res[g] = {"n": len(d), "z": None, "p": 1.0}  # no test possible (JSON null, "-" in tables)
             continue
         w = wilcoxon(d, alternative="greater", method="approx", correction=True)
         res[g] = {"n": len(d), "z": float(w.zstatistic), "p": float(w.pvalue)}
@@ -220,6 +230,10 @@ class FitResult:
                 "n_datasets": self.n_sets}
 
 
+def _z(v) -> str:
+    return f"{v:6.2f}" if v is not None else f"{'-':>6}"
+
+
 def fit(sets: list[DataSet], device_range: bool = False) -> FitResult:
     """device_range: search only where the device accepts the point (-20 kohm <= x* <= 0, 0 <= y* < every Q)."""
     if device_range:
@@ -240,8 +254,19 @@ def fit(sets: list[DataSet], device_range: bool = False) -> FitResult:
     stats_e, stats_q = wilcoxon_holm(by_e), wilcoxon_holm(by_q)
     by = {c: {"n": len(by_q[c]), "mean_r2_ep": float(np.mean(by_e[c])), "mean_r2_q": float(np.mean(by_q[c])),
               "ep": stats_e[c], "q": stats_q[c]} for c in by_q}
-    return FitResult(x, y, float(np.mean([p["r2_q"] for p in per])), float(np.mean([p["r2_ep"] for p in per])),
-                     len(sets), per, by)
+    res = FitResult(x, y, float(np.mean([p["r2_q"] for p in per])), float(np.mean([p["r2_ep"] for p in per])),
+                    len(sets), per, by)
+    _check_finite(res.__dict__, "fit")
+    return res
+
+
+def _check_finite(obj, where):
+    from .files import FileProblem, finite
+
+    try:
+        finite(obj, where)
+    except FileProblem as e:
+        raise DataError(str(e)) from None
 
 
 def validate(sets: list[DataSet], x_star_ohm: float, y_star_pc: float) -> dict:
@@ -258,10 +283,12 @@ def validate(sets: list[DataSet], x_star_ohm: float, y_star_pc: float) -> dict:
         by_e.setdefault(s.condition, []).append(r2e)
         by_q.setdefault(s.condition, []).append(r2q)
     se, sq = wilcoxon_holm(by_e), wilcoxon_holm(by_q)
-    return {"mean_r2_ep": float(np.mean([p["r2_ep"] for p in per])), "mean_r2_q": float(np.mean([p["r2_q"] for p in per])),
+    out = {"mean_r2_ep": float(np.mean([p["r2_ep"] for p in per])), "mean_r2_q": float(np.mean([p["r2_q"] for p in per])),
             "per_trial": per,
             "by_condition": {c: {"n": len(by_q[c]), "mean_r2_ep": float(np.mean(by_e[c])),
                                  "mean_r2_q": float(np.mean(by_q[c])), "ep": se[c], "q": sq[c]} for c in by_q}}
+    _check_finite(out, "validate")
+    return out
 
 
 def table(res: FitResult) -> list[str]:
@@ -270,8 +297,8 @@ def table(res: FitResult) -> list[str]:
     lines = [head, "-" * len(head)]
     for c, v in sorted(res.by_condition.items()):
         e, q = v["ep"], v["q"]
-        lines.append(f"{c:<24} {v['n']:>3} | {v['mean_r2_ep']:8.3f} {e['z']:6.2f} {e['p_holm']:9.4f} | "
-                     f"{v['mean_r2_q']:8.3f} {q['z']:6.2f} {q['p_holm']:9.4f}")
+        lines.append(f"{c:<24} {v['n']:>3} | {v['mean_r2_ep']:8.3f} {_z(e['z'])} {e['p_holm']:9.4f} | "
+                     f"{v['mean_r2_q']:8.3f} {_z(q['z'])} {q['p_holm']:9.4f}")
     return lines
 
 

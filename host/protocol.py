@@ -6,10 +6,12 @@ own), so host and device cannot disagree about the layout.
 
 from __future__ import annotations
 
+import operator
 import struct
 from dataclasses import dataclass
 
 import hid_protocol as hp
+import sensation_core as sc
 
 RESULT_WORDS = {
     hp.RES_OK: "ok",
@@ -148,26 +150,103 @@ class CalInfo:
         return bool(self.flags & 1)
 
 
+_WRAP = 1 << 30  # seq and time_us wrap here; 32-bit fields stay below it in magnitude
+_STATUS_BITS = sc.ST_BOUND_MASK | sc.ST_FAULT_MASK
+_FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING
+
+
+def _need(ok: bool, what: str, value, accepted: str):
+    if not ok:
+        raise ProtocolError(f"report field {what}={value} out of range (accepted: {accepted})")
+
+
+def _rate_ok(r):
+    return r == 0 or hp.RATE_MIN_HZ <= r <= hp.RATE_MAX_HZ
+
+
+def _check_telemetry(t: Telemetry):
+    _need(t.channel <= 3, "channel", t.channel, "0..3")
+    _need(t.mode in sc.MODES, "mode", t.mode, f"{min(sc.MODES)}..{max(sc.MODES)}")
+    _need(t.stop in STOP_WORDS, "stop", t.stop, f"0..{max(STOP_WORDS)}")
+    _need(t.i_ua <= sc.I_LIMIT_UA, "i_ua", t.i_ua, f"0..{sc.I_LIMIT_UA}")
+    _need(t.t_us <= sc.T_LIMIT_US, "t_us", t.t_us, f"0..{sc.T_LIMIT_US}")
+    _need(t.vp_mv <= sc.VP_LIMIT_MV, "vp_mv", t.vp_mv, f"0..{sc.VP_LIMIT_MV}")
+    _need(sc.RP_INVALID <= t.rp_ohm <= sc.RP_OVER, "rp_ohm", t.rp_ohm, f"{sc.RP_INVALID}..{sc.RP_OVER}")
+    _need(t.me_ua2ms < _WRAP, "me_ua2ms", t.me_ua2ms, "0..2**30-1")
+    for name in ("mq_target_fc_per_ohm", "mq_last_fc_per_ohm"):
+        v = getattr(t, name)
+        _need(-_WRAP < v < _WRAP, name, v, "|x| < 2**30")
+    _need(not t.status & ~_STATUS_BITS, "status", f"0x{t.status:x}", f"bits of 0x{_STATUS_BITS:x}")
+    _need(t.next_i_ua <= sc.I_LIMIT_UA, "next_i_ua", t.next_i_ua, f"0..{sc.I_LIMIT_UA}")
+    _need(t.next_t_us <= sc.T_LIMIT_US, "next_t_us", t.next_t_us, f"0..{sc.T_LIMIT_US}")
+    _need(not t.flags & ~_FLAG_BITS, "flags", f"0x{t.flags:x}", f"bits of 0x{_FLAG_BITS:x}")
+    _need(_rate_ok(t.rate_hz), "rate_hz", t.rate_hz, f"0 or {hp.RATE_MIN_HZ}..{hp.RATE_MAX_HZ}")
+
+
+def _check_info(i: Info):
+    _need(i.result in RESULT_WORDS, "result", i.result, f"0..{max(RESULT_WORDS)}")
+    _need(1 <= i.n_channels <= 4, "n_channels", i.n_channels, "1..4")
+    _need(1 <= i.hard_i_max_ua <= sc.I_LIMIT_UA, "hard_i_max_ua", i.hard_i_max_ua, f"1..{sc.I_LIMIT_UA}")
+    _need(1 <= i.hard_t_max_us <= sc.T_LIMIT_US, "hard_t_max_us", i.hard_t_max_us, f"1..{sc.T_LIMIT_US}")
+    _need(1 <= i.hard_q_max_pc <= sc.Q_LIMIT_PC, "hard_q_max_pc", i.hard_q_max_pc, f"1..{sc.Q_LIMIT_PC}")
+    _need(i.compliance_mv <= sc.VP_LIMIT_MV, "compliance_mv", i.compliance_mv, f"0..{sc.VP_LIMIT_MV}")
+    _need(1 <= i.i_min_ua <= i.i_max_ua <= i.hard_i_max_ua, "i_min_ua/i_max_ua", f"{i.i_min_ua}/{i.i_max_ua}",
+          "1 <= i_min <= i_max <= hard_i_max")
+    _need(1 <= i.t_min_us <= i.t_max_us <= i.hard_t_max_us, "t_min_us/t_max_us", f"{i.t_min_us}/{i.t_max_us}",
+          "1 <= t_min <= t_max <= hard_t_max")
+    _need(1 <= i.q_max_pc <= i.hard_q_max_pc, "q_max_pc", i.q_max_pc, "1..hard_q_max_pc")
+    _need(i.mode in sc.MODES, "mode", i.mode, f"{min(sc.MODES)}..{max(sc.MODES)}")
+    _need(_rate_ok(i.rate_hz), "rate_hz", i.rate_hz, f"0 or {hp.RATE_MIN_HZ}..{hp.RATE_MAX_HZ}")
+    _need(i.keepalive_ms == 0 or hp.KEEPALIVE_MIN_MS <= i.keepalive_ms <= hp.KEEPALIVE_MAX_MS, "keepalive_ms",
+          i.keepalive_ms, f"0 (simulator only) or {hp.KEEPALIVE_MIN_MS}..{hp.KEEPALIVE_MAX_MS}")
+
+
+def _check_cal(c: CalInfo):
+    _need(c.result in RESULT_WORDS, "result", c.result, f"0..{max(RESULT_WORDS)}")
+    _need(c.channel <= 3, "channel", c.channel, "0..3")
+    _need(c.flags <= 7, "flags", f"0x{c.flags:x}", "bits of 0x7")
+    _need(c.i0_ua <= sc.I_LIMIT_UA, "i0_ua", c.i0_ua, f"0..{sc.I_LIMIT_UA}")
+    _need(c.t0_us <= sc.T_LIMIT_US, "t0_us", c.t0_us, f"0..{sc.T_LIMIT_US}")
+    _need(sc.X_STAR_MIN_OHM <= c.x_star_ohm <= 0, "x_star_ohm", c.x_star_ohm, f"{sc.X_STAR_MIN_OHM}..0")
+    _need(0 <= c.y_star_pc <= sc.Q_LIMIT_PC, "y_star_pc", c.y_star_pc, f"0..{sc.Q_LIMIT_PC}")
+    _need(c.rp0_ohm == 0 or sc.RP_MIN_OHM <= c.rp0_ohm <= sc.RP_MAX_OHM, "rp0_ohm", c.rp0_ohm,
+          f"0 or {sc.RP_MIN_OHM}..{sc.RP_MAX_OHM}")
+    _need(c.mode in sc.MODES, "mode", c.mode, f"{min(sc.MODES)}..{max(sc.MODES)}")
+
+
 def decode(report: bytes):
-    """One 64-byte IN report -> Telemetry, Ack or Info."""
+    """One 64-byte IN report -> Telemetry, Ack, Info or CalInfo.
+
+    ProtocolError (naming the field) for a report of the wrong length, an unknown
+    type, or any field outside the range the firmware can send (docs/protocol.md)."""
     if len(report) != hp.REPORT_LEN:
         raise ProtocolError(f"report of {len(report)} bytes, expected {hp.REPORT_LEN}")
     typ = report[0]
     seq = struct.unpack_from("<I", report, hp.O_SEQ)[0]
     time_us = struct.unpack_from("<I", report, hp.O_TIME)[0]
+    _need(seq < _WRAP, "seq", seq, "0..2**30-1")
+    _need(time_us < _WRAP, "time_us", time_us, "0..2**30-1")
     if typ == hp.REP_TELEMETRY:
         f = _TELEMETRY.unpack_from(report, 0)
-        return Telemetry(
+        t = Telemetry(
             seq=f[4], time_us=f[5], channel=f[1], mode=f[2], stop=f[3], i_ua=f[6], t_us=f[7], vp_mv=f[8],
             rp_ohm=f[9], me_ua2ms=f[10], mq_target_fc_per_ohm=f[11], mq_last_fc_per_ohm=f[12], status=f[13],
             next_i_ua=f[14], next_t_us=f[15], overruns=f[16], loop_us=f[17], flags=f[18], rate_hz=f[19],
         )
+        _check_telemetry(t)
+        return t
     if typ == hp.REP_ACK:
-        return Ack(seq, time_us, report[hp.O_CMD], report[hp.O_RESULT], report[hp.O_TAG], report[hp.O_DETAIL])
+        a = Ack(seq, time_us, report[hp.O_CMD], report[hp.O_RESULT], report[hp.O_TAG], report[hp.O_DETAIL])
+        # any command byte: the device echoes an unknown or corrupted command in its refusal
+        _need(a.result in RESULT_WORDS, "result", a.result, f"0..{max(RESULT_WORDS)}")
+        _need(a.detail < hp.REPORT_LEN, "detail", a.detail, f"0..{hp.REPORT_LEN - 1}")
+        return a
     if typ == hp.REP_INFO:
         fw = report[hp.O_FW : hp.O_FW + 3]
         lim = struct.unpack_from("<HHHHI", report, hp.O_LIM)
-        return Info(
+        raw_board = bytes(report[hp.O_BOARD : hp.O_BOARD + hp.BOARD_LEN]).rstrip(b"\0")
+        _need(all(0x20 <= c < 0x7F for c in raw_board), "board", repr(raw_board), "printable ASCII")
+        i = Info(
             seq=seq, time_us=time_us, tag=report[hp.O_TAG], firmware="%d.%d.%d" % tuple(fw),
             n_channels=report[hp.O_FW + 3],
             hard_i_max_ua=struct.unpack_from("<H", report, hp.O_HARD_I)[0],
@@ -177,15 +256,19 @@ def decode(report: bytes):
             i_min_ua=lim[0], i_max_ua=lim[1], t_min_us=lim[2], t_max_us=lim[3], q_max_pc=lim[4],
             mode=report[hp.O_INFO_MODE], rate_hz=report[hp.O_INFO_RATE],
             keepalive_ms=struct.unpack_from("<H", report, hp.O_INFO_KEEPALIVE)[0],
-            board=bytes(report[hp.O_BOARD : hp.O_BOARD + hp.BOARD_LEN]).rstrip(b"\0").decode("ascii", "replace"),
+            board=raw_board.decode("ascii"),
             result=report[hp.O_RESULT],
         )
+        _check_info(i)
+        return i
     if typ == hp.REP_CAL:
         i0, t0 = struct.unpack_from("<HH", report, hp.O_CAL_I0)
         x, y, rp0 = struct.unpack_from("<iii", report, hp.O_CAL_X)
-        return CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
-                       report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE])
-    raise ProtocolError(f"unknown report type 0x{typ:02x}")
+        c = CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
+                    report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE])
+        _check_cal(c)
+        return c
+    raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")
 
 
 def split_stdio_stream(data: bytes):
@@ -200,37 +283,143 @@ def split_stdio_stream(data: bytes):
     return out
 
 
-class Commands:
-    """OUT report builders with a running tag (a thin layer over hid_protocol's)."""
+class CommandError(ValueError):
+    """A command argument the wire cannot carry or the device would refuse;
+    raised before anything is sent. The message names the argument and its range."""
 
-    def __init__(self):
+
+# what the host knows the device accepts (hid_protocol and sensation_core are the
+# firmware's own modules; a board's hard limits are inside the core's envelope)
+I_RANGE_UA = (1, sc.I_LIMIT_UA)
+T_RANGE_US = (hp.T_FLOOR_US, sc.T_LIMIT_US)
+Q_MAX_PC = sc.Q_LIMIT_PC
+X_STAR_RANGE_OHM = (sc.X_STAR_MIN_OHM, 0)
+KEEPALIVE_RANGE_MS = (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS)
+RATE_RANGE_HZ = (hp.RATE_MIN_HZ, hp.RATE_MAX_HZ)
+CHANNELS = (0, 1, 2, 3, hp.CH_ALL)
+
+
+def _whole(name, v) -> int:
+    if isinstance(v, bool):
+        raise CommandError(f"{name} must be a whole number, not {v!r}")
+    if isinstance(v, float) and v.is_integer():
+        return int(v)
+    try:
+        return operator.index(v)
+    except TypeError:
+        raise CommandError(f"{name} must be a whole number, not {v!r}") from None
+
+
+def _in(name, v, lo, hi, unit="") -> int:
+    v = _whole(name, v)
+    if not lo <= v <= hi:
+        raise CommandError(f"{name}={v} out of range: the device accepts {lo}..{hi}{' ' + unit if unit else ''}")
+    return v
+
+
+def _channel(ch) -> int:
+    ch = _whole("channel", ch)
+    if ch not in CHANNELS:
+        raise CommandError(f"channel={ch} out of range: 0..3, or {hp.CH_ALL} for all channels")
+    return ch
+
+
+def check_calibration(i0_ua, t0_us, x_star_ohm, y_star_pc):
+    """The calibration rules the device applies (soft limits aside): (i0, t0, x, y) as ints."""
+    i0 = _in("i0_ua", i0_ua, *I_RANGE_UA, "uA")
+    t0 = _in("t0_us", t0_us, *T_RANGE_US, "us")
+    if i0 * t0 > Q_MAX_PC:
+        raise CommandError(f"i0_ua*t0_us={i0 * t0} pC out of range: at most {Q_MAX_PC} pC")
+    x = _in("x_star_ohm", x_star_ohm, *X_STAR_RANGE_OHM, "ohm")
+    y = _whole("y_star_pc", y_star_pc)
+    if not 0 <= y < i0 * t0:
+        raise CommandError(f"y_star_pc={y} out of range: 0 <= y* < i0*t0 = {i0 * t0} pC")
+    return i0, t0, x, y
+
+
+def check_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
+    i_max = _in("i_max_ua", i_max_ua, *I_RANGE_UA, "uA")
+    i_min = _in("i_min_ua", i_min_ua, 1, i_max, "uA (up to i_max_ua)")
+    t_max = _in("t_max_us", t_max_us, *T_RANGE_US, "us")
+    t_min = _in("t_min_us", t_min_us, hp.T_FLOOR_US, t_max, "us (up to t_max_us)")
+    q_max = _in("q_max_pc", q_max_pc, i_min * t_min, Q_MAX_PC, "pC (from i_min_ua*t_min_us)")
+    return i_min, i_max, t_min, t_max, q_max
+
+
+def check_skin(rs_ohm, beta_q16, cp_pf):
+    rs, beta, cp = _whole("rs_ohm", rs_ohm), _whole("beta_q16", beta_q16), _whole("cp_pf", cp_pf)
+    if rs == beta == cp == 0:
+        return rs, beta, cp  # removes the model
+    return (_in("rs_ohm", rs, 0, sc.SKIN_RS_MAX_OHM, "ohm"),
+            _in("beta_q16", beta, sc.SKIN_BETA_MIN_Q16, sc.SKIN_BETA_MAX_Q16, "(Q.16)"),
+            _in("cp_pf", cp, sc.SKIN_CP_MIN_PF, sc.SKIN_CP_MAX_PF, "pF"))
+
+
+def check_mode(mode, rate_hz):
+    mode = _in("mode", mode, min(sc.MODES), max(sc.MODES))
+    rate = _whole("rate_hz", rate_hz)
+    if rate and not RATE_RANGE_HZ[0] <= rate <= RATE_RANGE_HZ[1]:
+        raise CommandError(f"rate_hz={rate} out of range: the device accepts {RATE_RANGE_HZ[0]}..{RATE_RANGE_HZ[1]} Hz "
+                           "(0 keeps the current rate)")
+    return mode, rate
+
+
+class Commands:
+    """OUT report builders with a running tag (a thin layer over hid_protocol's).
+
+    Every argument is checked against what the wire carries and what the device
+    accepts; an out-of-range value raises CommandError before a report exists.
+    `Commands(check=False)` skips the checks: only for tests of the device's own
+    refusals (the values are then masked to their field widths on the wire)."""
+
+    def __init__(self, check: bool = True):
         self.tag = 0
+        self.check = check
 
     def _next(self) -> int:
         self.tag = (self.tag + 1) & 0xFF
         return self.tag
 
+    def _ch(self, ch):
+        return _channel(ch) if self.check else ch
+
     def arm(self, ch=hp.CH_ALL) -> bytes:
-        return bytes(hp.cmd_arm(bytearray(64), ch, self._next()))
+        return bytes(hp.cmd_arm(bytearray(64), self._ch(ch), self._next()))
 
     def disarm(self, ch=hp.CH_ALL) -> bytes:
-        return bytes(hp.cmd_disarm(bytearray(64), ch, self._next()))
+        return bytes(hp.cmd_disarm(bytearray(64), self._ch(ch), self._next()))
 
     def calibrate(self, i0_ua, t0_us, x_star_ohm, y_star_pc, ch=hp.CH_ALL) -> bytes:
-        return bytes(hp.cmd_calibrate(bytearray(64), ch, i0_ua, t0_us, x_star_ohm, y_star_pc, self._next()))
+        ch = self._ch(ch)
+        v = (i0_ua, t0_us, x_star_ohm, y_star_pc)
+        if self.check:
+            v = check_calibration(*v)
+        return bytes(hp.cmd_calibrate(bytearray(64), ch, *v, self._next()))
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc) -> bytes:
-        return bytes(hp.cmd_set_limits(bytearray(64), i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc, self._next()))
+        v = (i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
+        if self.check:
+            v = check_limits(*v)
+        return bytes(hp.cmd_set_limits(bytearray(64), *v, self._next()))
 
     def set_skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL) -> bytes:
         """MODE_FAST's skin model (host/skin.py fits it); (0, 0, 0) removes it."""
-        return bytes(hp.cmd_set_skin(bytearray(64), ch, rs_ohm, beta_q16, cp_pf, self._next()))
+        ch = self._ch(ch)
+        v = (rs_ohm, beta_q16, cp_pf)
+        if self.check:
+            v = check_skin(*v)
+        return bytes(hp.cmd_set_skin(bytearray(64), ch, *v, self._next()))
 
     def set_mode(self, mode, rate_hz=0) -> bytes:
-        return bytes(hp.cmd_set_mode(bytearray(64), mode, rate_hz, self._next()))
+        if self.check:
+            mode, rate_hz = check_mode(mode, rate_hz)
+        return bytes(hp.cmd_set_mode(bytearray(64), mode & 0xFF, rate_hz & 0xFF, self._next()))
 
-    def keepalive(self, timeout_ms=0) -> bytes:
+    def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS) -> bytes:
+        """The host is alive; the device stops every channel if silent for timeout_ms (it cannot be switched off)."""
+        if self.check:
+            timeout_ms = _in("keepalive timeout_ms", timeout_ms, *KEEPALIVE_RANGE_MS, "ms")
         return bytes(hp.cmd_keepalive(bytearray(64), timeout_ms, self._next()))
 
     def get_info(self, ch=hp.CH_ALL) -> bytes:
-        return bytes(hp.cmd_get_info(bytearray(64), self._next(), ch))
+        return bytes(hp.cmd_get_info(bytearray(64), self._next(), self._ch(ch)))

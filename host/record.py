@@ -62,16 +62,26 @@ def write_recording(path: Path | str, tel: list[Telemetry], meta: dict) -> None:
             r.write(t)
 
 
-def read_recording(path: Path | str) -> tuple[dict, list[dict]]:
-    """(metadata, rows as dicts of ints); RecordingError naming the line on anything malformed."""
+CUT = "cut_at_line"  # metadata key read_recording(allow_cut=True) adds for a recording cut short
+
+
+def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, list[dict]]:
+    """(metadata, rows as dicts of ints); RecordingError naming the line on anything malformed.
+
+    allow_cut: a recording cut short (killed while writing: its last line has no
+    line end) gives its complete rows, and meta[CUT] = the line number of the cut row."""
+    from .files import FileProblem, read_text_file
+
     path = Path(path)
     try:
-        text = path.read_text()
-    except OSError as e:
-        raise RecordingError(f"{path}: cannot read ({e.strerror})") from None
-    except UnicodeDecodeError:
-        raise RecordingError(f"{path}: not a text file") from None
+        text = read_text_file(path, "recording")
+    except FileProblem as e:
+        raise RecordingError(str(e)) from None
     lines = text.splitlines()
+    cut = None
+    if allow_cut and text and not text.endswith(("\n", "\r")) and lines and not lines[-1].startswith("#"):
+        cut = len(lines)
+        lines = lines[:-1]
     meta: dict[str, str] = {}
     k = 0
     while k < len(lines) and lines[k].startswith("#"):
@@ -93,13 +103,20 @@ def read_recording(path: Path | str) -> tuple[dict, list[dict]]:
         if len(cells) != len(header):
             what = "truncated" if n == len(lines) and len(cells) < len(header) else "malformed"
             raise RecordingError(f"{path} line {n}: {what} row ({len(cells)} of {len(header)} columns)")
-        try:
-            rows.append({h: int(c) for h, c in zip(header, cells)})
-        except ValueError:
-            bad = next(h for h, c in zip(header, cells) if not c.strip().lstrip("-").isdigit())
-            raise RecordingError(f"{path} line {n}: column {bad} is not a whole number") from None
+        row = {}
+        for h, c in zip(header, cells):
+            c = c.strip()
+            if not c.lstrip("-").isdigit() or c.count("-") > 1:
+                raise RecordingError(f"{path} line {n}: column {h} is not a whole number")
+            if len(c) > 11 or not -2**32 < int(c) < 2**32:
+                raise RecordingError(f"{path} line {n}: column {h} = {c[:12]}{'...' if len(c) > 12 else ''} "
+                                     "out of range (a 32-bit field)")
+            row[h] = int(c)
+        rows.append(row)
     if not rows:
-        raise RecordingError(f"{path}: no pulses recorded")
+        raise RecordingError(f"{path}: no pulses recorded" + (f" (cut at line {cut})" if cut else ""))
+    if cut:
+        meta[CUT] = cut
     return meta, rows
 
 

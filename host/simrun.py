@@ -49,14 +49,55 @@ def default_limits() -> dict:
             "q_max_pc": cfg.HARD_Q_MAX_PC}
 
 
+MAX_SCENARIO_S = 3600.0  # longest scenario the simulator runs (an hour of stimulation)
+
+
 def scenario_keys(name: str):
-    """The scenario's keyframes (the firmware's own module, run by CPython)."""
+    """The scenario's keyframes (the firmware's own module, run by CPython); SimError
+    naming the file and the accepted range for anything the simulator would not run."""
+    from .files import FileProblem, read_text_file
+
     sim_electrode = firmware_module("sim_electrode")
+    builtin = ", ".join(sim_electrode.NAMES)
+    if name.endswith(".csv"):
+        if not Path(name).is_file():
+            raise SimError(f"no such scenario file {name} (built-in scenarios: {builtin}; "
+                           "or a CSV file with the columns time_s,contact,hydration)")
+        try:
+            read_text_file(name, "scenario file")
+        except FileProblem as e:
+            raise SimError(str(e)) from None
     try:
         sc = sim_electrode.scenario(name)
     except (ValueError, OSError) as e:
         raise SimError(str(e)) from None
+    times = [k[0] for k in sc.keys]
+    bad = next((t for t in times if not 0.0 <= t <= MAX_SCENARIO_S), None)  # also NaN
+    if bad is not None or not 0.0 < sc.duration_s <= MAX_SCENARIO_S:
+        raise SimError(f"{name}: time_s {bad if bad is not None else sc.duration_s:g} out of range: "
+                       f"a scenario runs 0..{MAX_SCENARIO_S:.0f} s")
     return sc.keys, sc.duration_s
+
+
+def die_with_parent():
+    """preexec_fn for the VM child: the kernel kills it when this process dies
+    (Linux PR_SET_PDEATHSIG; elsewhere the child's --exit-on-eof covers it)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
+def vm_popen(args, **kw):
+    """Start the firmware in the VM; it never outlives this process: the kernel kills it
+    with its parent, and --exit-on-eof (in args) ends it when its stdin closes."""
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
+    return subprocess.Popen(args, env=env, preexec_fn=die_with_parent, **kw)
 
 
 @dataclass
@@ -75,13 +116,13 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
 
     if not FIRMWARE.is_dir():
         raise SimError(f"firmware folder not found at {FIRMWARE}: run steadytouch from a checkout of the project")
+    # a scripted run on the virtual clock with no host: keep-alive off (docs/safety-host.md)
     args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--mode", mode,
-            "--channels", str(channels), "--seed", str(seed),
+            "--channels", str(channels), "--seed", str(seed), "--keepalive-ms", "0", "--exit-on-eof",
             "--auto", f"{cal.i0_ua},{cal.t0_us},{cal.x_star_ohm},{cal.y_star_pc}"]
     if frames:
         args += ["--frames", str(frames)]
-    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
-    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    p = vm_popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     chunks, t_start, last, tail = [], time.monotonic(), 0.0, b""
     try:
         while True:
@@ -103,6 +144,8 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
     finally:
         if p.poll() is None:
             p.kill()
+            p.wait()
+        p.stdin.close()
     if rc != 0:
         raise SimError(err[0] if err else f"the simulated device exited with code {rc}")
     return [decode(r) for r in split_stdio_stream(b"".join(chunks))]

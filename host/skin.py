@@ -56,18 +56,20 @@ def sweep(i0_ua: int, t0_us: int) -> list[tuple[int, int]]:
 def load(path) -> list[tuple[float, float, float]]:
     """(i_ua, t_us, rp_ohm) rows of a CSV with those columns (a header row; other
     columns, e.g. Exp. 1's participant and condition, are ignored)."""
-    import csv
-
+    from .files import csv_rows, read_text_file
     from .fit import _num  # the same row checks and messages as `steadytouch fit`
 
+    table = csv_rows(path, read_text_file(path, "CSV file"))
+    need = ("i_ua", "t_us", "rp_ohm")
+    head = [h.strip() for h in table[0]] if table else []
+    if not set(need) <= set(head):
+        raise SkinFitError(f"{path}: needs the columns i_ua, t_us, rp_ohm (header: {', '.join(head) or 'none'})")
+    ix = [head.index(k) for k in need]
     rows = []
-    with open(path, newline="") as f:
-        r = csv.DictReader(f)
-        need = ("i_ua", "t_us", "rp_ohm")
-        if not r.fieldnames or not set(need) <= set(r.fieldnames):
-            raise SkinFitError(f"{path}: needs the columns i_ua, t_us, rp_ohm (header: {r.fieldnames})")
-        for n, row in enumerate(r, start=2):
-            rows.append(tuple(_num(path, n, k, row[k]) for k in need))
+    for n, row in enumerate(table[1:], start=2):
+        if not any(c.strip() for c in row):
+            continue
+        rows.append(tuple(_num(path, n, k, row[j] if j < len(row) else None) for k, j in zip(need, ix)))
     return rows
 
 
@@ -91,11 +93,14 @@ def fit(pulses) -> SkinModel:
     best = None
     for beta0 in (0.5, 0.75):
         for cp0 in (3000.0, 15000.0, 60000.0):
-            x0 = [min(500.0, 0.5 * r.min()), beta0, math.log(float(np.median(r))), math.log(cp0)]
+            x0 = np.clip([min(500.0, 0.5 * r.min()), beta0, math.log(float(np.median(r))), math.log(cp0)],
+                         np.add(lo, 1e-9), np.subtract(hi, 1e-9))  # inside the bounds whatever the data
             f = least_squares(res, x0, bounds=(lo, hi), x_scale=[500.0, 0.1, 0.5, 0.5])
             if best is None or f.cost < best.cost:
                 best = f
     rs, beta, ls, lc = best.x
+    if not np.all(np.isfinite(best.x)) or not np.isfinite(best.cost):
+        raise SkinFitError("the fit did not converge: the pulses do not determine the model")
     m = SkinModel(round(rs), round(beta * 65536), round(math.exp(lc)), math.exp(ls), 0.0)
     m.worst_misfit = float(np.max(np.abs(rp_ohm(i, t, m.rs_ohm, m.beta, m.s_ohm, m.cp_pf) / r - 1.0)))
     return m

@@ -14,7 +14,6 @@ detection and commands live above, in `device.py`, the same for all.
 
 from __future__ import annotations
 
-import os
 import queue
 import subprocess
 import sys
@@ -37,6 +36,9 @@ class Disconnected(TransportError):
 
 class Transport:
     url = ""
+    # False for a simulated device on its virtual clock (keep-alive off there: its
+    # time runs far faster than a host can answer); Device.live() then sends none
+    realtime = True
 
     def read(self, timeout_s: float) -> bytes | None:
         raise NotImplementedError
@@ -115,20 +117,21 @@ class SimTransport(Transport):
 
     def __init__(self, scenario: str, channels: int = 2, seed: int = 1, realtime: bool = True,
                  auto: str | None = None, mode: str = "akhtar", frames: int | None = None):
-        from .simrun import FIRMWARE, SHARED, micropython_exe
+        from .simrun import FIRMWARE, micropython_exe, vm_popen
 
         self.url = f"sim://{scenario}"
+        self.realtime = realtime
         args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--channels", str(channels),
-                "--seed", str(seed), "--mode", mode]
+                "--seed", str(seed), "--mode", mode, "--exit-on-eof"]
         if realtime:
-            args.append("--realtime")
+            args.append("--realtime")  # the board's keep-alive, on the host's time line
+        else:
+            args += ["--keepalive-ms", "0"]  # virtual time outruns any host: off (docs/safety-host.md)
         if auto:
             args += ["--auto", auto]
         if frames:
             args += ["--frames", str(frames)]
-        env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
-        self.p = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  env=env, bufsize=0)
+        self.p = vm_popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
         self.q: queue.Queue = queue.Queue(maxsize=100000)
         self.error = ""
         self.reader = threading.Thread(target=self._pump, daemon=True)
@@ -172,7 +175,16 @@ class SimTransport(Transport):
             raise Disconnected("the simulated device stopped") from None
 
     def close(self) -> None:
+        try:
+            self.p.stdin.close()  # --exit-on-eof: the simulated device stops and exits
+        except OSError:
+            pass
         if self.p.poll() is None:
+            try:
+                self.p.wait(timeout=0.5)
+                return
+            except subprocess.TimeoutExpired:
+                pass
             self.p.terminate()
             try:
                 self.p.wait(timeout=5)
@@ -207,6 +219,12 @@ def open_transport(url: str, hid_module=None) -> Transport:
         except ValueError:
             raise TransportError(f"bad device URL {url!r}: channels, seed and frames take whole numbers") from None
         realtime = _flag(q, "realtime", "1") not in ("0", "no", "false")
+        from .simrun import SimError, scenario_keys
+
+        try:
+            scenario_keys(scenario)  # a missing, binary or unbounded scenario: one line, before the VM starts
+        except SimError as e:
+            raise TransportError(f"bad device URL {url!r}: {e}") from None
         mode = _flag(q, "mode", "akhtar")
         if mode not in ("akhtar", "fast", "open", "charge", "energy", "pwlinear"):
             raise TransportError(f"bad device URL {url!r}: mode is akhtar, fast, open, charge, energy or pwlinear")

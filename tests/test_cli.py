@@ -55,7 +55,7 @@ def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
     "text, words",
     [
         ("# x: 1\nseq,time_us\n", "missing column(s) channel, i_ua"),
-        (None, "truncated row"),
+        (None, "malformed row"),  # a short row that is not the last: corruption, not a cut
         (None, "column rp_ohm is not a whole number"),
         ("", "no column header"),
     ],
@@ -66,8 +66,8 @@ def test_corrupted_or_truncated_csv_is_one_clear_line(tmp_path, text, words):
         good = run("sim", "steady", "--mode", "akhtar", "--out", str(tmp_path), "--no-plot")
         assert good.returncode == 0, good.stderr
         lines = (tmp_path / "steady-akhtar.csv").read_text().splitlines()
-        if "truncated" in words:
-            lines[-1] = lines[-1][: len(lines[-1]) // 2]
+        if "malformed" in words:
+            lines[-3] = lines[-3][: len(lines[-3]) // 2]
         else:
             c = lines[-5].split(",")
             c[6] = "12k"
@@ -77,6 +77,20 @@ def test_corrupted_or_truncated_csv_is_one_clear_line(tmp_path, text, words):
     p = run("audit", str(f))
     assert p.returncode == 2 and words in p.stderr and "Traceback" not in p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
+
+
+def test_audit_of_a_cut_recording_audits_its_complete_rows_and_says_where(tmp_path):
+    good = run("sim", "steady", "--mode", "akhtar", "--out", str(tmp_path), "--no-plot")
+    assert good.returncode == 0, good.stderr
+    text = (tmp_path / "steady-akhtar.csv").read_text()
+    lines = text.splitlines()
+    for cut in (len(text) - 7, len(text) - len(lines[-1]) - 3):  # inside the last row, inside the one before
+        f = tmp_path / "cut.csv"
+        f.write_text(text[:cut])
+        n = len(text[:cut].splitlines())
+        p = run("audit", str(f))
+        assert p.returncode == 0, p.stderr
+        assert f"cut short at line {n}" in p.stdout and "bit-exact" in p.stdout
 
 
 def test_ctrl_c_during_record_leaves_a_readable_file(tmp_path):
@@ -104,11 +118,13 @@ def test_device_commands_over_sim():
     p = run("arm", "--device", url)
     assert p.returncode == 2 and "arm: not calibrated (send calibrate first)" in p.stderr
     p = run("calibrate", "--device", url, "--i0-ua", "50000", "--t0-us", "1000", "--x-star-ohm", "-1670", "--y-star-pc", "0")
-    assert p.returncode == 2 and "calibrate: value out of range" in p.stderr
+    assert p.returncode == 2 and "i0_ua=50000 out of range: the device accepts 1..20000 uA" in p.stderr  # the host's check
+    p = run("calibrate", "--device", url, "--i0-ua", "15000", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0")
+    assert p.returncode == 2 and "i0_ua=15000 out of range: the device's soft limits are 500..10000 uA" in p.stderr
     p = run("calibrate", "--device", url, "--i0-ua", "1000")
     assert p.returncode == 2 and "calibrate needs --t0-us, --x-star-ohm, --y-star-pc" in p.stderr
-    p = run("mode", "open", "--rate-hz", "101", "--device", url)
-    assert p.returncode == 2 and "mode: value out of range" in p.stderr
+    p = run("mode", "open", "--rate-hz", "300", "--device", url)
+    assert p.returncode == 2 and "rate_hz=300 out of range: the device accepts 10..100 Hz" in p.stderr
     p = run("limits", "--device", url, "--i-min-ua", "500", "--i-max-ua", "20000", "--t-min-us", "100",
             "--t-max-us", "4000", "--q-max-pc", "5000000")
     assert p.returncode == 2 and "limits: value out of range" in p.stderr

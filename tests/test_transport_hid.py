@@ -132,7 +132,7 @@ def test_url_parsing_and_serial():
 def test_commands_wait_for_their_ack_and_count_gaps():
     dev = FakeHidDevice([telemetry_report(1), telemetry_report(5)])
     d = Device(HidTransport(hp.VID, hp.PID, hid_module=FakeHid(dev)))
-    assert d.keepalive(0).ok
+    assert d.keepalive(1000).ok
     assert isinstance(d.read(0.1), Telemetry) and isinstance(d.read(0.1), Telemetry)
     assert d.lost > 0  # 1 -> 5 after the ack's seq: gaps counted
     with pytest.raises(DeviceError, match="arm: not calibrated"):

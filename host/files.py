@@ -1,0 +1,107 @@
+"""Files in and out, for user mistakes to end in one clear line.
+
+- `Outputs`: every file a command writes goes to a temporary name in the same
+  folder and is renamed over the final name only when the whole command
+  succeeded (`os.replace`: atomic on one file system). A failed or interrupted
+  run leaves no new or half-written file behind, and an old file is kept.
+- `read_text_file` / `csv_rows`: a text CSV or an error naming the file (binary
+  data, unreadable, fields longer than the csv module's limit).
+- `finite`: no NaN or Infinity reaches a JSON file or a table.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+
+class FileProblem(ValueError):
+    """An input or output file problem; the message names the file."""
+
+
+class Outputs:
+    """with Outputs() as out: p = out.path("x.csv"); write p ... -> renamed at the end."""
+
+    def __init__(self):
+        self._files: list[tuple[Path, Path]] = []
+
+    def path(self, final: Path | str) -> Path:
+        final = Path(final)
+        tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp{final.suffix}")
+        self._files.append((tmp, final))
+        return tmp
+
+    def commit(self) -> None:
+        for tmp, final in self._files:
+            os.replace(tmp, final)
+        self._files = []
+
+    def discard(self) -> None:
+        for tmp, _ in self._files:
+            try:
+                tmp.unlink()
+            except FileNotFoundError:
+                pass
+        self._files = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()
+        return False
+
+
+def read_text_file(path: Path | str, what: str = "file") -> str:
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise FileProblem(f"{path}: no such {what}") from None
+    except IsADirectoryError:
+        raise FileProblem(f"{path}: is a folder, not a {what}") from None
+    except OSError as e:
+        raise FileProblem(f"{path}: cannot read ({e.strerror})") from None
+    if b"\0" in data[:65536]:
+        raise FileProblem(f"{path}: a binary file, not a text {what}")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise FileProblem(f"{path}: not a UTF-8 text {what} (bad byte at offset {e.start})") from None
+
+
+def csv_rows(path: Path | str, text: str) -> list[list[str]]:
+    """All rows of CSV text; FileProblem naming the file and row on a CSV error."""
+    rows = []
+    r = csv.reader(text.splitlines())
+    try:
+        for row in r:
+            rows.append(row)
+    except csv.Error as e:
+        raise FileProblem(f"{path} row {r.line_num}: not a valid CSV row ({e})") from None
+    return rows
+
+
+def finite(obj, where: str = "result"):
+    """obj unchanged if every float in it is finite; FileProblem naming the first that is not."""
+    if isinstance(obj, float):
+        if not math.isfinite(obj):
+            raise FileProblem(f"{where} is {obj}: the data are degenerate (identical or constant values?)")
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            finite(v, f"{where}.{k}")
+    elif isinstance(obj, (list, tuple)):
+        for k, v in enumerate(obj):
+            finite(v, f"{where}[{k}]")
+    return obj
+
+
+def dump_json(obj, where: str = "result") -> str:
+    """JSON text with no NaN/Infinity (checked first, and refused by json itself)."""
+    return json.dumps(finite(obj, where), indent=1, allow_nan=False)
