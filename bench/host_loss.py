@@ -15,7 +15,7 @@ firmware in the MicroPython VM, real-time clock, 2 channels armed with --auto):
   board this is also USB unplugged or a hung host). Only the firmware's
   keep-alive guards it: the gap, in device time, between the host's last
   command and the device's last pulse, for the default 1000 ms timeout.
-Figures go into docs/safety-host.md.
+Figures go into docs/safety.md.
 """
 
 from __future__ import annotations

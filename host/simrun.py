@@ -116,7 +116,7 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
 
     if not FIRMWARE.is_dir():
         raise SimError(f"firmware folder not found at {FIRMWARE}: run steadytouch from a checkout of the project")
-    # a scripted run on the virtual clock with no host: keep-alive off (docs/safety-host.md)
+    # a scripted run on the virtual clock with no host: keep-alive off (docs/safety.md)
     args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--mode", mode,
             "--channels", str(channels), "--seed", str(seed), "--keepalive-ms", "0", "--exit-on-eof",
             "--auto", f"{cal.i0_ua},{cal.t0_us},{cal.x_star_ohm},{cal.y_star_pc}"]

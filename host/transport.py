@@ -126,7 +126,7 @@ class SimTransport(Transport):
         if realtime:
             args.append("--realtime")  # the board's keep-alive, on the host's time line
         else:
-            args += ["--keepalive-ms", "0"]  # virtual time outruns any host: off (docs/safety-host.md)
+            args += ["--keepalive-ms", "0"]  # virtual time outruns any host: off (docs/safety.md)
         if auto:
             args += ["--auto", auto]
         if frames:

@@ -131,7 +131,7 @@ def test_a_silent_host_is_stopped_by_the_keepalive_within_its_timeout():
         assert isinstance(last, Ack) and pulses and stops
         gap_ms = (pulses[-1].time_us - last.time_us) % (1 << 30) / 1000
         print(f"host silent -> last pulse after {gap_ms:.0f} ms (keep-alive 200 ms)")
-        assert gap_ms <= 200 + 2 * 1000 / pulses[-1].rate_hz  # the timeout, a frame or two late (frame grid)
+        assert gap_ms <= 200  # checked before each frame's pulses: none starts later than the timeout
         assert all(not r.armed for r in stops)
 
 
