@@ -1,0 +1,119 @@
+"""The Python side of the chip tests: drives tests/chip/host.mjs (Node, rp2040js)
+over JSON lines. Emulated time only: every figure here is emulated and exact."""
+
+from __future__ import annotations
+
+import base64
+import json
+import subprocess
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+class ChipError(AssertionError):
+    """A Python exception on the board, or the host could not do what was asked."""
+
+
+class BoardReset(Exception):
+    def __init__(self, reason, reset_ns, reply):
+        super().__init__(f"the board reset ({reason}) at {reset_ns / 1e9:.6f} s emulated")
+        self.reason = reason
+        self.reset_ns = reset_ns
+        self.reply = reply
+
+
+class Host:
+    """One Node process; `boot()` starts a fresh emulated chip in it (flash from an image)."""
+
+    def __init__(self, node: str, emulator: Path, cache: Path, log: Path):
+        self.log = open(log, "ab")
+        self.p = subprocess.Popen([node, str(HERE / "host.mjs"), str(emulator), str(cache)], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=self.log, cwd=str(HERE))
+
+    def call(self, op: str, **kw) -> dict:
+        self.p.stdin.write((json.dumps({"op": op, **kw}) + "\n").encode())
+        self.p.stdin.flush()
+        line = self.p.stdout.readline()
+        if not line:
+            raise ChipError(f"the chip host exited (code {self.p.poll()}); its stderr is in {self.log.name}")
+        r = json.loads(line)
+        if r.get("ok"):
+            return r
+        if "reset" in r:
+            raise BoardReset(r["reset"], r["reset_ns"], r)
+        raise ChipError(f"{op}: {r.get('error')}\nboard said: {r.get('rx', '')[-600:]}")
+
+    def boot(self, fs_image: Path | None = None) -> "Chip":
+        r = self.call("boot", fs_image=str(fs_image) if fs_image else None)
+        return Chip(self, r)
+
+    def close(self):
+        if self.p.poll() is None:
+            self.p.stdin.close()
+            try:
+                self.p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        self.log.close()
+
+
+class Chip:
+    def __init__(self, host: Host, boot_reply: dict):
+        self.host = host
+        self.banner = boot_reply["banner"]
+
+    def exec(self, code: str, timeout_ms: int = 120000) -> str:
+        """Run code in the raw REPL; its stdout, or ChipError with the board's traceback."""
+        r = self.host.call("exec", code=code, timeout_ms=timeout_ms)
+        if r["err"]:
+            raise ChipError(r["err"])
+        self.last = r
+        return r["out"]
+
+    def eval(self, expr: str):
+        """A Python literal printed by the board (repr), parsed on the host."""
+        import ast
+
+        return ast.literal_eval(self.exec(f"print(repr({expr}))").strip())
+
+    def put(self, data: bytes, remote: str):
+        self.host.call("put", path=remote, data=base64.b64encode(data).decode())
+
+    def save_fs(self, file: Path):
+        self.host.call("save_fs", file=str(file))
+
+    def wiring(self, cfg, n: int):
+        self.host.call("wiring", wiring={
+            "gate_pins": list(cfg.GATE_PINS[:n]), "pwm_pins": list(cfg.AMP_PWM_PINS[:n]),
+            "adc_inputs": list(cfg.ADC_INPUTS[:n]), "amp_full_ua": cfg.AMP_UA_AT_FULL,
+            "uv_per_count": cfg.VMON_UV_PER_COUNT, "compliance_mv": cfg.COMPLIANCE_MV})
+
+    def load(self, ch: int, rs_ohm=0, rp_ohm=0, tau_us=0, open_=False):
+        self.host.call("load", ch=ch, load={"rs_ohm": rs_ohm, "rp_ohm": rp_ohm, "tau_us": tau_us, "open": open_})
+
+    def take(self) -> dict:
+        """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns) so far."""
+        return self.host.call("take")
+
+    def run(self, ms: float) -> int:
+        return self.host.call("run", ms=ms)["nanos"]
+
+
+# The real board layer on the chip. USB is left out here (tests/chip/test_chip_hid.py
+# runs it); a soft timer feeds the watchdog while the REPL waits between commands.
+BOARD = """
+import machine, time, micropython, gc
+import board_config as cfg, hid_protocol as hp, board_rp2, stim
+if {no_usb}:
+    board_rp2.Board._usb = lambda self: None
+b = board_rp2.Board(cfg)
+_feeder = machine.Timer(period=100, callback=lambda t: b.feed_watchdog())
+"""
+
+
+def make_board(chip: Chip, cfg, usb: bool = False) -> None:
+    chip.wiring(cfg, cfg.N_CHANNELS)
+    chip.exec(BOARD.format(no_usb=not usb))
+    chip.take()  # forget the edges of the set-up

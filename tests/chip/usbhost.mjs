@@ -1,0 +1,8 @@
+export class UsbHost {
+  constructor(board) {
+    this.board = board;
+  }
+  take() {
+    return { reports: [] };
+  }
+}
