@@ -78,6 +78,12 @@ class Chip:
 
         return ast.literal_eval(self.exec(f"print(repr({expr}))").strip())
 
+    def eval_out(self, code: str):
+        """Run code whose last output line is a Python literal; return it parsed."""
+        import ast
+
+        return ast.literal_eval(self.exec(code).strip().splitlines()[-1])
+
     def put(self, data: bytes, remote: str):
         self.host.call("put", path=remote, data=base64.b64encode(data).decode())
 

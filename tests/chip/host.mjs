@@ -44,6 +44,7 @@ class Chip {
     this.edges = [];
     this.pulses = [];
     this.feeds = [];
+    this.samples = []; // ADC conversions started: [input, ns, counts]
     this.nowNs = null; // time of the PIO step being executed (edge timestamps)
     this.wiring = null;
     this.loads = [];
@@ -64,16 +65,18 @@ class Chip {
       pio.writeUint32 = (offset, value) => {
         this.stepPio(clock.nanos);
         write(offset, value);
+        this.pioNext = 0; // enables, FIFO words, restarts: find the next step again
         // an instruction the CPU executes directly (SMx_INSTR) changes pins at once
         this.nowNs = clock.nanos;
         pio.checkChangedPins();
         this.nowNs = null;
       };
     }
+    this.pioNext = 0; // earliest step of a running state machine (ns); Infinity: all idle
     const tick = clock.tick.bind(clock);
     clock.tick = (ns) => {
       tick(ns);
-      this.stepPio(clock.nanos);
+      if (clock.nanos >= this.pioNext) this.stepPio(clock.nanos);
     };
   }
 
@@ -102,13 +105,19 @@ class Chip {
         }
         if (s.next <= t && (!best || s.next < best.next)) best = s;
       }
-      if (!best) return;
+      if (!best) break;
       this.nowNs = best.next;
       best.m.step();
       best.pio.checkChangedPins();
       this.nowNs = null;
       best.next += this.periodNs(best.m);
     }
+    let next = Infinity;
+    for (const s of sms) {
+      const m = s.m;
+      if (m.enabled && !(m.waiting && m.waitType === 3 && m.txFIFO.empty && !m.execValid) && s.next < next) next = s.next;
+    }
+    this.pioNext = next;
   }
 
   // ---------------------------------------------------------------- world: gate, amplitude, monitor
@@ -121,7 +130,9 @@ class Chip {
     this.mcu.adc.onADCRead = (channel) => {
       const adc = this.mcu.adc;
       this.stepPio(this.clock.nanos);
-      adc.channelValues[channel] = this.monitorCounts(channel, this.clock.nanos);
+      const v = this.monitorCounts(channel, this.clock.nanos);
+      adc.channelValues[channel] = v;
+      this.samples.push([channel, this.clock.nanos, v]);
       adc.currentChannel = channel;
       adc.sampleAlarm.schedule(adc.sampleTime * 1000);
     };
@@ -211,11 +222,12 @@ function handle(msg) {
       return {};
     case 'take': {
       // edges, pulses and watchdog feeds recorded so far (and forget them)
-      const r = { edges: chip.edges, pulses: chip.pulses, feeds: chip.feeds, nanos: chip.clock.nanos,
+      const r = { edges: chip.edges, pulses: chip.pulses, feeds: chip.feeds, samples: chip.samples, nanos: chip.clock.nanos,
         gate: chip.wiring ? chip.wiring.gate_pins.map((p) => chip.mcu.gpio[p].value === GPIOPinState.High ? 1 : 0) : [] };
       chip.edges = [];
       chip.pulses = [];
       chip.feeds = [];
+      chip.samples = [];
       return r;
     }
     case 'run':
