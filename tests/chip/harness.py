@@ -103,6 +103,11 @@ class Chip:
         """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns) so far."""
         return self.host.call("take")
 
+    def hid(self, send=(), report_descriptor: int = 0) -> dict:
+        """The emulated USB host's view of the board's HID interface: IN reports
+        [ns, hex] since the last call, endpoints, enumerations; `send` queues OUT reports."""
+        return self.host.call("hid", send=[bytes(r).hex() for r in send], report_descriptor=report_descriptor)
+
     def run(self, ms: float) -> int:
         return self.host.call("run", ms=ms)["nanos"]
 
@@ -115,6 +120,10 @@ import board_config as cfg, hid_protocol as hp, board_rp2, stim
 if {no_usb}:
     board_rp2.Board._usb = lambda self: None
 b = board_rp2.Board(cfg)
+if b.usb is not None:  # re-enumerating: what the REPL writes before the host is back is lost
+    while not b.usb.is_open():
+        time.sleep_ms(5)
+    time.sleep_ms(20)
 _feeder = machine.Timer(period=100, callback=lambda t: b.feed_watchdog())
 """
 

@@ -233,6 +233,13 @@ function handle(msg) {
     case 'run':
       b.run(msg.ms * 1e6);
       return { nanos: chip.clock.nanos };
+    case 'debug': {
+      if (msg.ms) b.run(msg.ms * 1e6);
+      const c = b.cdc;
+      return { rx: b.rxText(), pending: b.pending.length, held: b.heldRead, fifo: c.txFIFO.itemCount,
+        cdc: { initialized: c.initialized, in: c.inEndpoint, out: c.outEndpoint }, outReads: b.outReads,
+        pc: b.core.PC.toString(16), waiting: b.core.waiting, cycles: b.core.cycles, ipsr: b.core.IPSR };
+    }
     case 'hid':
       return chip.usb.take(msg);
     default:
