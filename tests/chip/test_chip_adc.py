@@ -33,8 +33,22 @@ def model_ohm(load, t_us):
     return rs + (rp * (1 - math.exp(-t_us / tau)) if tau else rp)
 
 
-def run(chip, cfg, loads, i0, t0, frames=4, mode=sc.MODE_OPEN_LOOP):
+@pytest.fixture(scope="module")
+def board(chip_host, cfg):
+    """One chip with the real Board for this module; each test starts from stop_all()."""
+    chip = chip_host.boot(chip_host.image)
     make_board(chip, cfg)
+    return chip
+
+
+@pytest.fixture()
+def chip(board):
+    board.exec("b.stop_all()")
+    board.take()
+    return board
+
+
+def run(chip, cfg, loads, i0, t0, frames=4, mode=sc.MODE_OPEN_LOOP):
     for k, (rs, rp, tau) in enumerate(loads):
         chip.load(k, rs_ohm=rs, rp_ohm=rp, tau_us=tau)
     rows = chip.eval_out(RUN.format(n=len(loads), mode=mode, i0=i0, t0=t0, frames=frames))
@@ -104,7 +118,6 @@ def test_capture_of_an_electrode_is_sample_exact_and_rp_is_the_model_at_the_peak
 def test_electrode_off_reads_compliance_and_latches_the_channel(chip, cfg):
     import hid_protocol as hp
 
-    make_board(chip, cfg)
     chip.host.call("load", ch=0, load={"open": True})
     rows = chip.eval_out(RUN.format(n=1, mode=sc.MODE_AKHTAR, i0=1000, t0=1000, frames=3))
     pulses = chip.take()["pulses"]

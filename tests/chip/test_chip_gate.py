@@ -12,12 +12,26 @@ from .harness import make_board
 US = 1000  # ns
 
 
+@pytest.fixture(scope="module")
+def board(chip_host, cfg):
+    """One chip with the real Board for this module; each test starts from stop_all()."""
+    chip = chip_host.boot(chip_host.image)
+    make_board(chip, cfg)
+    return chip
+
+
+@pytest.fixture()
+def chip(board):
+    board.exec("b.stop_all()")
+    board.take()
+    return board
+
+
 def widths_us(pulses, ch=0):
     return [(p["fall_ns"] - p["rise_ns"]) / US for p in pulses if p["ch"] == ch]
 
 
 def test_widths_equal_t_across_the_accepted_range(chip, cfg):
-    make_board(chip, cfg)
     ts = [hp.T_FLOOR_US, hp.T_FLOOR_US + 1, 99, 100, 1000, 2047, cfg.HARD_T_MAX_US - 1, cfg.HARD_T_MAX_US]
     out = chip.exec(f"""
 b.set_amplitude(0, 1000)
@@ -41,7 +55,7 @@ def test_fire_refuses_t_outside_the_range(chip, cfg, t_us):
     """Issue 11: T = 1 used to push -1 to the PIO (0xFFFFFFFF: a gate high for 71 minutes)."""
     if t_us == 8001:
         t_us = cfg.HARD_T_MAX_US + 1
-    make_board(chip, cfg)
+    chip.exec("b.refused = 0")
     n = chip.eval(f"(b.set_amplitude(0, 1000), b.fire(0, {t_us}), b.refused)[1:]")
     chip.run(20)
     r = chip.take()
@@ -50,7 +64,6 @@ def test_fire_refuses_t_outside_the_range(chip, cfg, t_us):
 
 @pytest.mark.parametrize("word", ["0xFFFFFFFF", "-1", "1 << 31", "0x7FFFFFFF", "0x1FFFF"])
 def test_no_word_in_the_state_machine_holds_the_gate_beyond_the_hard_limit(chip, cfg, word):
-    make_board(chip, cfg)
     chip.exec(f"b.sms[0].put({word})\ntime.sleep_ms(30)")
     r = chip.take()
     assert widths_us(r["pulses"]) == [cfg.HARD_T_MAX_US]
@@ -58,7 +71,6 @@ def test_no_word_in_the_state_machine_holds_the_gate_beyond_the_hard_limit(chip,
 
 
 def test_stop_mid_pulse_lowers_the_gate_at_once(chip, cfg):
-    make_board(chip, cfg)
     chip.exec("""
 b.sms[0].put(5000 - 2)
 time.sleep_us(1000)
@@ -73,7 +85,6 @@ time.sleep_ms(20)""")
 
 
 def test_stop_drops_words_still_queued_and_the_next_pulse_is_exact(chip, cfg):
-    make_board(chip, cfg)
     chip.exec("""
 sm = b.sms[0]
 for w in (3000, 3000, 3000, 3000):
@@ -88,7 +99,6 @@ time.sleep_ms(20)""")
 
 
 def test_stop_when_idle_or_twice_keeps_the_gate_low_without_a_glitch(chip, cfg):
-    make_board(chip, cfg)
     chip.exec("b.stop(0)\nb.stop(0)\nb.stop_all()\ntime.sleep_ms(5)")
     r = chip.take()
     assert r["edges"] == [] and r["gate"] == [0, 0]
