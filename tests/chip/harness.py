@@ -4,11 +4,121 @@ over JSON lines. Emulated time only: every figure here is emulated and exact."""
 from __future__ import annotations
 
 import base64
+import hashlib
+import importlib.util
 import json
+import shutil
+import os
 import subprocess
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent.parent
+FIRMWARE = ROOT / "firmware"
+SHARED = ROOT / "shared"
+# ../shared/emulator beside the checkout, used in place (CHIP_EMULATOR=DIR points elsewhere)
+EMULATOR = Path(os.environ.get("CHIP_EMULATOR") or ROOT.parent / "shared" / "emulator")
+CACHE = ROOT / ".cache" / "chip"  # ignored: rp2040js, the .mpy files, the flash image
+RP2040JS = "1.4.1"
+# on the board: everything the rp2 build needs but main.py (it would start the loop at boot)
+HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py", "main.py"}
+NO_EMULATOR = ("chip tests skipped: ../shared/emulator is absent (the Pico's MicroPython firmware.uf2, boot ROM and "
+               "rp2run.mjs beside the checkout; build it with its build-firmware.sh, see docs/hardware.md)")
+
+
+class ChipUnavailable(RuntimeError):
+    """The emulated chip cannot be set up (Node, npm or mpy-cross missing or failing)."""
+
+
+class NoEmulator(ChipUnavailable):
+    """../shared/emulator is not there."""
+
+
+def load_cfg():
+    spec = importlib.util.spec_from_file_location("board_config_chip", FIRMWARE / "board_config.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _tool(name: str) -> str:
+    p = shutil.which(name)
+    if not p:
+        raise ChipUnavailable(f"the chip tests need {name} (Node >= 20 with npm); ../shared/emulator is present")
+    return p
+
+
+def install_rp2040js() -> None:
+    """npm ci of tests/chip/package.json + lock (rp2040js, pinned) into CACHE, unless already there."""
+    pkg = CACHE / "node_modules" / "rp2040js" / "package.json"
+    lock = (HERE / "package-lock.json").read_bytes()
+    if pkg.exists() and json.loads(pkg.read_text())["version"] == RP2040JS and (CACHE / "package-lock.json").exists() \
+            and (CACHE / "package-lock.json").read_bytes() == lock:
+        return
+    CACHE.mkdir(parents=True, exist_ok=True)
+    shutil.copy(HERE / "package.json", CACHE / "package.json")
+    (CACHE / "package-lock.json").write_bytes(lock)
+    p = subprocess.run([_tool("npm"), "ci", "--no-audit", "--no-fund", "--prefix", str(CACHE)], capture_output=True,
+                       text=True, timeout=600)
+    if p.returncode or not pkg.exists() or json.loads(pkg.read_text())["version"] != RP2040JS:
+        raise ChipUnavailable(f"npm could not install rp2040js {RP2040JS} into {CACHE}: {p.stderr.strip()[-400:]}")
+
+
+def _compile(mpy_cross: str, src: Path, out_dir: Path) -> Path:
+    out = out_dir / (src.stem + ".mpy")
+    p = subprocess.run([mpy_cross, "-march=armv6m", "-s", src.name, "-o", str(out), str(src)], capture_output=True,
+                       text=True)
+    if p.returncode:
+        raise ChipUnavailable(f"mpy-cross failed on {src}: {p.stderr.strip()}")
+    return out
+
+
+def device_files(mpy_cross: str, out: Path) -> list[tuple[Path, str]]:
+    """(local .mpy, path on the board) for the project's device files and board-lib, all in /lib."""
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    files = []
+    for src in sorted(SHARED.glob("*.py")) + sorted(FIRMWARE.glob("*.py")):
+        if src.name not in HOST_ONLY:
+            files.append((_compile(mpy_cross, src, out), "/lib/" + src.stem + ".mpy"))
+    lib = EMULATOR / "board-lib"
+    for src in sorted(lib.rglob("*.py")):
+        rel = src.relative_to(lib)
+        d = out / rel.parent
+        d.mkdir(parents=True, exist_ok=True)
+        files.append((_compile(mpy_cross, src, d), "/lib/" + str(rel.with_suffix(".mpy"))))
+    return files
+
+
+def start_host(mpy_cross: str) -> "Host":
+    """Check the emulator, install rp2040js, compile the device files, start the Node host
+    and make (or reuse) the flash image holding them; `host.boot(host.image)` boots a chip."""
+    if not (EMULATOR / "firmware.uf2").exists() or not (EMULATOR / "rp2run.mjs").exists():
+        raise NoEmulator(NO_EMULATOR)
+    node = _tool("node")
+    install_rp2040js()
+    files = device_files(mpy_cross, CACHE / "mpy")
+    h = hashlib.sha256((EMULATOR / "firmware.uf2").read_bytes())
+    for local, remote in files:
+        h.update(remote.encode() + local.read_bytes())
+    image = CACHE / f"fs-{h.hexdigest()[:16]}.img"
+    host = Host(node, EMULATOR, CACHE, CACHE / "host.log")
+    try:
+        if not image.exists():
+            chip = host.boot()
+            chip.exec("import os\nfor d in ('/lib', '/lib/usb', '/lib/usb/device'):\n"
+                      "    try:\n        os.mkdir(d)\n    except OSError:\n        pass")
+            for local, remote in files:
+                chip.put(local.read_bytes(), remote)
+            for old in CACHE.glob("fs-*.img"):
+                old.unlink()
+            chip.save_fs(image)
+    except BaseException:
+        host.close()
+        raise
+    host.image = image
+    return host
 
 
 class ChipError(AssertionError):
