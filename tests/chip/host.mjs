@@ -151,7 +151,11 @@ class Chip {
   onGate(k, pin, high) {
     const t = this.nowNs ?? this.clock.nanos;
     this.edges.push([pin, high ? 1 : 0, t]);
-    if (high) this.rise.set(k, [t, this.amplitudeUa(k)]);
+    if (high) {
+      this.rise.set(k, [t, this.amplitudeUa(k)]);
+      const l = this.loads[k];
+      if (l && l.cycle) l.idx = ((l.idx ?? -1) + 1) % l.cycle.length; // a load that changes every pulse
+    }
     else if (this.rise.has(k)) {
       const [t0, i] = this.rise.get(k);
       this.rise.delete(k);
@@ -164,7 +168,8 @@ class Chip {
     if (!w) return 0;
     const k = w.adc_inputs.indexOf(adcInput);
     if (k < 0 || !this.rise.has(k)) return 0;
-    const load = this.loads[k];
+    let load = this.loads[k];
+    if (load && load.cycle) load = load.cycle[load.idx ?? 0];
     const [t0, i] = this.rise.get(k);
     let uv;
     if (!load || load.open) uv = w.compliance_mv * 1000; // no electrode: the stimulator sits at compliance
