@@ -43,8 +43,6 @@ class Clock:
 
 
 class Board:
-    refused = 0  # pulses fire() refused (T outside the board's range); an instance count once set
-
     def __init__(self, cfg):
         self.cfg = cfg
         n = cfg.N_CHANNELS
@@ -68,6 +66,7 @@ class Board:
         self.dma = rp2.DMA()
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
         self.overhead = pio_gate.GATE_OVERHEAD_US
+        self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
         self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
         self.usb = self._usb()
 

@@ -111,9 +111,10 @@ def start_host(mpy_cross: str) -> "Host":
                       "    try:\n        os.mkdir(d)\n    except OSError:\n        pass")
             for local, remote in files:
                 chip.put(local.read_bytes(), remote)
-            for old in CACHE.glob("fs-*.img"):
-                old.unlink()
             chip.save_fs(image)
+            # keep a few: another run (a benchmark, a second checkout state) may still boot from its own
+            for old in sorted(CACHE.glob("fs-*.img"), key=lambda p: p.stat().st_mtime)[:-4]:
+                old.unlink()
     except BaseException:
         host.close()
         raise

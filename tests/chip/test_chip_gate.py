@@ -102,3 +102,23 @@ def test_stop_when_idle_or_twice_keeps_the_gate_low_without_a_glitch(chip, cfg):
     chip.exec("b.stop(0)\nb.stop(0)\nb.stop_all()\ntime.sleep_ms(5)")
     r = chip.take()
     assert r["edges"] == [] and r["gate"] == [0, 0]
+
+
+def test_the_board_calls_of_the_frame_allocate_nothing(chip, cfg):
+    """fire (accepted and refused), stop, set_amplitude and feed_watchdog under the heap lock."""
+    out = chip.exec("""
+b.refused = 0
+micropython.heap_lock()
+try:
+    for t in (100, 1000, 5, 9000):
+        b.set_amplitude(0, 1500)
+        b.fire(0, t)
+        b.stop(0)
+        b.feed_watchdog()
+    ok = 1
+except MemoryError:
+    ok = 0
+micropython.heap_unlock()
+print(ok, b.refused)""")
+    assert out.split() == ["1", "2"]
+    assert widths_us(chip.take()["pulses"]) == [100, 1000]
