@@ -39,18 +39,6 @@ LOAD = {"rs_ohm": 500, "rp_ohm": 20000, "tau_us": 450, "open": False}
 JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)]}
 SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/core_step.py)
 
-# a board_config with n channels (the Pico's board_config has N_CHANNELS = 2)
-CFG = """
-import board_config as _c
-class Cfg:
-    pass
-for _k in dir(_c):
-    if not _k.startswith('__'):
-        setattr(Cfg, _k, getattr(_c, _k))
-Cfg.N_CHANNELS = {n}
-cfg = Cfg
-"""
-
 RUN = """
 s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, 50)
 buf = bytearray(hp.REPORT_LEN)
@@ -79,10 +67,7 @@ def bench(host, cfg, channels, modes, widths, frames, warm=3):
     rows = []
     for n in channels:
         chip = host.boot(host.image)
-        chip.exec(CFG.format(n=n))
-        cfg_n = type("Cfg", (), {k: getattr(cfg, k) for k in dir(cfg) if not k.startswith("__")})
-        cfg_n.N_CHANNELS = n
-        make_board(chip, cfg_n)
+        make_board(chip, cfg, n_channels=n)
         for name in modes:
             for t0 in widths:
                 for k in range(n):

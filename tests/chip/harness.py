@@ -228,6 +228,14 @@ class Chip:
 BOARD = """
 import machine, time, micropython, gc
 import board_config as cfg, hid_protocol as hp, board_rp2, stim
+if {n} != cfg.N_CHANNELS:  # a board_config with another channel count
+    class Cfg:
+        pass
+    for _k in dir(cfg):
+        if not _k.startswith('__'):
+            setattr(Cfg, _k, getattr(cfg, _k))
+    Cfg.N_CHANNELS = {n}
+    cfg = Cfg
 if {no_usb}:
     board_rp2.Board._usb = lambda self: None
 b = board_rp2.Board(cfg)
@@ -239,7 +247,8 @@ _feeder = machine.Timer(period=100, callback=lambda t: b.feed_watchdog())
 """
 
 
-def make_board(chip: Chip, cfg, usb: bool = False) -> None:
-    chip.wiring(cfg, cfg.N_CHANNELS)
-    chip.exec(BOARD.format(no_usb=not usb))
+def make_board(chip: Chip, cfg, usb: bool = False, n_channels: int | None = None) -> None:
+    n = n_channels or cfg.N_CHANNELS
+    chip.wiring(cfg, n)
+    chip.exec(BOARD.format(no_usb=not usb, n=n))
     chip.take()  # forget the edges of the set-up
