@@ -122,3 +122,26 @@ micropython.heap_unlock()
 print(ok, b.refused)""")
     assert out.split() == ["1", "2"]
     assert widths_us(chip.take()["pulses"]) == [100, 1000]
+
+
+def test_a_t_below_the_floor_that_gets_past_the_firmware_is_refused_by_the_board(chip, cfg):
+    """Defence in depth: even if the channel state held T = 5 us (the firmware's own
+    checks bypassed), the board fires nothing and the frame latches the channel."""
+    chip.load(0, rp_ohm=10000)
+    out = chip.exec("""
+b.refused = 0
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, 1, 50)
+buf = bytearray(hp.REPORT_LEN)
+for rep in (hp.cmd_calibrate(buf, hp.CH_ALL, 1000, 1000, -1670, 186000), hp.cmd_arm(bytearray(64), hp.CH_ALL)):
+    assert s.handle(rep, time.ticks_us()) == hp.RES_OK
+s.sync_outputs()
+s.run(2)
+c = s.chans[0]
+c.held = False
+c.t = 5
+s.run(3)
+print(b.refused, c.armed, c.stop == hp.STOP_NONE)""")
+    r = chip.take()
+    assert out.split() == ["1", "False", "False"]
+    assert all(w >= hp.T_FLOOR_US for w in widths_us(r["pulses"])) and len(r["pulses"]) == 2
+    assert r["gate"][0] == 0
