@@ -20,8 +20,8 @@ SHARED = ROOT / "shared"
 EMULATOR = Path(os.environ.get("CHIP_EMULATOR") or ROOT.parent / "shared" / "emulator")
 CACHE = ROOT / ".cache" / "chip"  # ignored: rp2040js, the .mpy files, the flash image
 RP2040JS = "1.4.1"
-# on the board: everything the rp2 build needs but main.py (it would start the loop at boot)
-HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py", "main.py"}
+# on the board, in /lib: what the rp2 build needs (main.py too: only /main.py starts at boot)
+HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py"}
 NO_EMULATOR = ("chip tests skipped: ../shared/emulator is absent (the Pico's MicroPython firmware.uf2, boot ROM and "
                "rp2run.mjs beside the checkout; build it with its build-firmware.sh, see docs/hardware.md)")
 
