@@ -175,7 +175,7 @@ class Chip:
         self.host = host
         self.banner = boot_reply["banner"]
 
-    def exec(self, code: str, timeout_ms: int = 120000) -> str:
+    def exec(self, code: str, timeout_ms: int = 20000) -> str:
         """Run code in the raw REPL; its stdout, or ChipError with the board's traceback."""
         r = self.host.call("exec", code=code, timeout_ms=timeout_ms)
         if r["err"]:
