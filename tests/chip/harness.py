@@ -137,15 +137,34 @@ class BoardReset(Exception):
 class Host:
     """One Node process; `boot()` starts a fresh emulated chip in it (flash from an image)."""
 
+    WALL_S = 900  # a host call that takes longer is a hang: the emulator is stopped
+
     def __init__(self, node: str, emulator: Path, cache: Path, log: Path):
+        import queue
+        import threading
+
         self.log = open(log, "ab")
         self.p = subprocess.Popen([node, str(HERE / "host.mjs"), str(emulator), str(cache)], stdin=subprocess.PIPE,
                                   stdout=subprocess.PIPE, stderr=self.log, cwd=str(HERE))
+        self.lines = queue.Queue()
+
+        def reader():
+            for line in self.p.stdout:
+                self.lines.put(line)
+            self.lines.put(b"")
+
+        threading.Thread(target=reader, daemon=True).start()
 
     def call(self, op: str, **kw) -> dict:
+        import queue
+
         self.p.stdin.write((json.dumps({"op": op, **kw}) + "\n").encode())
         self.p.stdin.flush()
-        line = self.p.stdout.readline()
+        try:
+            line = self.lines.get(timeout=self.WALL_S)
+        except queue.Empty:
+            self.p.kill()
+            raise ChipError(f"{op}: no answer from the chip host in {self.WALL_S} s of wall time; stopped it")
         if not line:
             raise ChipError(f"the chip host exited (code {self.p.poll()}); its stderr is in {self.log.name}")
         r = json.loads(line)
