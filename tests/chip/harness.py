@@ -233,10 +233,11 @@ class Chip:
         """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns) so far."""
         return self.host.call("take")
 
-    def hid(self, send=(), report_descriptor: int = 0) -> dict:
+    def hid(self, send=(), report_descriptor: int = 0, device_descriptor: bool = False) -> dict:
         """The emulated USB host's view of the board's HID interface: IN reports
         [ns, hex] since the last call, endpoints, enumerations; `send` queues OUT reports."""
-        return self.host.call("hid", send=[bytes(r).hex() for r in send], report_descriptor=report_descriptor)
+        return self.host.call("hid", send=[bytes(r).hex() for r in send], report_descriptor=report_descriptor,
+                              device_descriptor=device_descriptor)
 
     def run(self, ms: float) -> int:
         return self.host.call("run", ms=ms)["nanos"]

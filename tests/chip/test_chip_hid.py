@@ -20,7 +20,9 @@ print(([(c.ch, c.di, c.dt, c.rp) for c in s.chans], b.usb.dropped))
 
 def test_the_host_enumerates_the_hid_interface_and_reads_its_descriptor(chip, cfg):
     make_board(chip, cfg, usb=True)
-    h = chip.hid(report_descriptor=len(hp.REPORT_DESCRIPTOR))
+    h = chip.hid(report_descriptor=len(hp.REPORT_DESCRIPTOR), device_descriptor=True)
+    dev = bytes.fromhex(h["device_descriptor"])
+    assert dev[1] == 1 and int.from_bytes(dev[8:10], "little") == hp.VID and int.from_bytes(dev[10:12], "little") == hp.PID
     assert h["enumerations"] == 2  # CDC at boot, then CDC + HID after usb.device init
     assert h["hid"]["in_size"] == hp.REPORT_LEN and h["hid"]["out_size"] == hp.REPORT_LEN
     assert h["hid"]["in"] == h["hid"]["out"] > 0 and h["hid"]["interval"] == 1

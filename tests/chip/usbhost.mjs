@@ -110,9 +110,11 @@ export class UsbHost {
     }
   }
 
-  /** A standard GET_DESCRIPTOR on the control pipe to an interface; returns its bytes. */
-  getInterfaceDescriptor(type, itf, length) {
-    const setup = new Uint8Array([0x81, 6, 0, type, itf & 0xff, itf >> 8, length & 0xff, length >> 8]);
+  /** A standard GET_DESCRIPTOR on the control pipe (to the device, or to interface `itf`); its bytes. */
+  getDescriptor(type, length, { itf = null, index = 0 } = {}) {
+    const w = itf === null ? 0 : itf;
+    const setup = new Uint8Array([itf === null ? 0x80 : 0x81, 6, index, type, w & 0xff, w >> 8, length & 0xff,
+      length >> 8]);
     this.ep0 = { data: [] };
     this.usb.sendSetupPacket(setup);
     const ok = this.b.runUntil(() => this.ep0.data.length >= length, 1e9);
@@ -126,11 +128,12 @@ export class UsbHost {
     if (msg.send) for (const hex of msg.send) this.outQueue.push(Uint8Array.from(Buffer.from(hex, 'hex')));
     this.pump();
     let reportDescriptor = null;
-    if (msg.report_descriptor && this.hid) reportDescriptor = Buffer.from(this.getInterfaceDescriptor(0x22,
-      this.hid.number, msg.report_descriptor)).toString('hex');
+    if (msg.report_descriptor && this.hid) reportDescriptor = Buffer.from(this.getDescriptor(0x22,
+      msg.report_descriptor, { itf: this.hid.number })).toString('hex');
+    const device = msg.device_descriptor ? Buffer.from(this.getDescriptor(1, 18)).toString('hex') : null;
     const r = { reports: this.reports, hid: this.hid, enumerations: this.enumerations, sent: this.sent,
       queued: this.outQueue.length, config: this.config ? Buffer.from(this.config).toString('hex') : null,
-      report_descriptor: reportDescriptor, nanos: this.b.clock.nanos };
+      report_descriptor: reportDescriptor, device_descriptor: device, nanos: this.b.clock.nanos };
     this.reports = [];
     return r;
   }
