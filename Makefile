@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test run example bench mpy flash clean
+.PHONY: setup test run example bench mpy flash chip clean
 
 ## setup: create .venv and install the project with its pinned dev extras
 setup: $(STAMP)
@@ -36,6 +36,11 @@ mpy: setup
 ## flash: compile, deploy to a connected Pico with mpremote (installs usb-device-hid with mip), read the version back
 flash: setup
 	$(BIN)/steadytouch flash --build-dir build/device
+
+## chip: the real firmware and board layer on an emulated RP2040 (rp2040js; needs ../shared/emulator and Node >= 20): chip tests, then bench/chip.py
+chip: setup
+	$(BIN)/python -m pytest -q tests/chip
+	$(BIN)/python bench/chip.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -26,6 +26,10 @@ _FCS_THRESH_1 = const(0x1000000)
 _FCS_ERR_FLAGS = const(0xC00)  # UNDER | OVER, write 1 to clear
 _DREQ_ADC = const(36)
 _ADC_CLK_HZ = const(48000000)
+_T_FLOOR_US = hp.T_FLOOR_US
+# Instructions executed directly by stop(), encoded once at import (nothing per call)
+_PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
+_SET_PINS_0 = rp2.asm_pio_encode("set(pins, 0)", 0)
 
 
 class Clock:
@@ -50,7 +54,7 @@ class Board:
         self.gates = [machine.Pin(cfg.GATE_PINS[k], machine.Pin.OUT, value=0) for k in range(n)]
         self.sms = []
         for k in range(n):
-            sm = rp2.StateMachine(k, pio_gate.gate, freq=cfg.PIO_FREQ_HZ, set_base=self.gates[k])
+            sm = rp2.StateMachine(k, pio_gate.gate, freq=pio_gate.FREQ_HZ, set_base=self.gates[k])
             sm.active(1)
             self.sms.append(sm)
         self.pwms = [machine.PWM(machine.Pin(cfg.AMP_PWM_PINS[k]), freq=cfg.AMP_PWM_FREQ_HZ, duty_u16=0)
@@ -62,6 +66,7 @@ class Board:
         self.dma = rp2.DMA()
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
         self.overhead = pio_gate.GATE_OVERHEAD_US
+        self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
         self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
         self.usb = self._usb()
 
@@ -83,12 +88,17 @@ class Board:
         self.pwms[ch].duty_u16(i_ua * 65535 // self.amp_full)
 
     def stop(self, ch):
+        """Gate low, no pulse pending, amplitude 0: whatever the state machine was
+        doing (waiting, mid-pulse, a word still in its FIFO). Allocates nothing."""
         sm = self.sms[ch]
-        if sm.tx_fifo():
-            sm.active(0)
-            sm.restart()
-            sm.exec("set(pins, 0)")  # stopping mid-pulse could leave the gate high
-            sm.active(1)
+        sm.active(0)
+        sm.exec(_PULL_NOBLOCK)  # drain the 4-word TX FIFO: a queued word must not fire later
+        sm.exec(_PULL_NOBLOCK)
+        sm.exec(_PULL_NOBLOCK)
+        sm.exec(_PULL_NOBLOCK)
+        sm.restart()  # back to the program's first instruction (pull), shift counters cleared
+        sm.exec(_SET_PINS_0)  # stopping mid-pulse would otherwise leave the gate high
+        sm.active(1)
         self.pwms[ch].duty_u16(0)
 
     def stop_all(self):
@@ -99,7 +109,14 @@ class Board:
         self.wdt.feed()
 
     def fire(self, ch, t_us):
-        """One pulse of t_us at the set amplitude, the monitor captured across it."""
+        """One pulse of t_us at the set amplitude, the monitor captured across it.
+
+        The board's own last check: t_us outside [T_FLOOR_US, HARD_T_MAX_US] is
+        refused (no pulse, 0 samples, counted in `refused`); the PIO program
+        bounds the gate at HARD_T_MAX_US whatever word reaches it."""
+        if not _T_FLOOR_US <= t_us <= self.cfg.HARD_T_MAX_US:
+            self.refused += 1
+            return 0
         n = t_us // self.dt_us + 2  # a few samples past the falling edge
         if n > self.n_max:
             n = self.n_max

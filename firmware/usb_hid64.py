@@ -15,8 +15,11 @@ _SLOTS = const(16)
 
 class Hid64(HIDInterface):
     def __init__(self):
+        # no interval argument: usb-device-hid 0.1.2 has none, 0.2.0 has interval_ms;
+        # this class writes its own endpoint descriptors with self.binterval
         super().__init__(hp.REPORT_DESCRIPTOR, set_report_buf=bytearray(hp.REPORT_LEN),
-                         interface_str="steadytouch", binterval=1)
+                         interface_str="steadytouch")
+        self.binterval = 1  # ms between IN/OUT polls
         self._out_ep = None
         self._rx_xfer = bytearray(hp.REPORT_LEN)
         self._rx = [bytearray(hp.REPORT_LEN) for _ in range(_SLOTS)]

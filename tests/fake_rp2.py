@@ -31,7 +31,7 @@ def asm_pio(**config):
             "jmp": emit("jmp"), "nop": emit("nop"), "out": emit("out"), "in_": emit("in"),
             "block": _Name("block"), "noblock": _Name("noblock"), "x": _Name("x"), "y": _Name("y"),
             "osr": _Name("osr"), "isr": _Name("isr"), "pins": _Name("pins"), "x_dec": _Name("x--"),
-            "y_dec": _Name("y--"), "not_x": _Name("!x"),
+            "y_dec": _Name("y--"), "not_x": _Name("!x"), "null": _Name("null"),
         }
         g = f.__globals__
         saved = {k: g[k] for k in names if k in g}
@@ -52,6 +52,8 @@ def asm_pio(**config):
 class PIO:
     OUT_LOW = 0
     OUT_HIGH = 1
+    SHIFT_LEFT = 0
+    SHIFT_RIGHT = 1
 
 
 def install():

@@ -1,0 +1,147 @@
+"""The PIO gate on the emulated chip, driven by the real board_rp2.Board: widths
+from the gate pin's edge times (emulated ns) equal T to the microsecond across the
+accepted range, T outside it is refused, no word held in the state machine keeps
+the gate high beyond HARD_T_MAX_US, and stop() always leaves the gate low."""
+
+import pytest
+
+import hid_protocol as hp
+
+from .harness import make_board
+
+US = 1000  # ns
+
+
+@pytest.fixture(scope="module")
+def board(chip_host, cfg):
+    """One chip with the real Board for this module; each test starts from stop_all()."""
+    chip = chip_host.boot(chip_host.image)
+    make_board(chip, cfg)
+    return chip
+
+
+@pytest.fixture()
+def chip(board):
+    board.exec("b.stop_all()")
+    board.take()
+    return board
+
+
+def widths_us(pulses, ch=0):
+    return [(p["fall_ns"] - p["rise_ns"]) / US for p in pulses if p["ch"] == ch]
+
+
+def test_widths_equal_t_across_the_accepted_range(chip, cfg):
+    ts = [hp.T_FLOOR_US, hp.T_FLOOR_US + 1, 99, 100, 1000, 2047, cfg.HARD_T_MAX_US - 1, cfg.HARD_T_MAX_US]
+    out = chip.exec(f"""
+b.set_amplitude(0, 1000)
+b.set_amplitude(1, 1000)
+ns = []
+for t in {ts}:
+    ns.append(b.fire(0, t))
+    ns.append(b.fire(1, t))
+    time.sleep_us(100)
+print(ns)""")
+    r = chip.take()
+    assert widths_us(r["pulses"], 0) == ts
+    assert widths_us(r["pulses"], 1) == ts
+    # every rise has its fall; the gate is low at the end
+    assert r["gate"] == [0, 0]
+    assert eval(out) == [n for t in ts for n in (t // cfg.ADC_SAMPLE_US + 2,) * 2]
+
+
+@pytest.mark.parametrize("t_us", [-1, 0, 1, hp.T_FLOOR_US - 1, 8001, 65535, (1 << 30) - 1])
+def test_fire_refuses_t_outside_the_range(chip, cfg, t_us):
+    """Issue 11: T = 1 used to push -1 to the PIO (0xFFFFFFFF: a gate high for 71 minutes)."""
+    if t_us == 8001:
+        t_us = cfg.HARD_T_MAX_US + 1
+    chip.exec("b.refused = 0")
+    n = chip.eval(f"(b.set_amplitude(0, 1000), b.fire(0, {t_us}), b.refused)[1:]")
+    chip.run(20)
+    r = chip.take()
+    assert n == (0, 1) and r["edges"] == [] and r["gate"][0] == 0
+
+
+@pytest.mark.parametrize("word", ["0xFFFFFFFF", "-1", "1 << 31", "0x7FFFFFFF", "0x1FFFF"])
+def test_no_word_in_the_state_machine_holds_the_gate_beyond_the_hard_limit(chip, cfg, word):
+    chip.exec(f"b.sms[0].put({word})\ntime.sleep_ms(30)")
+    r = chip.take()
+    assert widths_us(r["pulses"]) == [cfg.HARD_T_MAX_US]
+    assert r["gate"][0] == 0
+
+
+def test_stop_mid_pulse_lowers_the_gate_at_once(chip, cfg):
+    chip.exec("""
+b.sms[0].put(5000 - 2)
+time.sleep_us(1000)
+t0 = time.ticks_us()
+b.stop(0)
+t1 = time.ticks_us()
+time.sleep_ms(20)""")
+    r = chip.take()
+    (p,) = r["pulses"]
+    assert 1000 <= (p["fall_ns"] - p["rise_ns"]) / US < 1200  # cut, not 5000
+    assert r["gate"][0] == 0
+
+
+def test_stop_drops_words_still_queued_and_the_next_pulse_is_exact(chip, cfg):
+    chip.exec("""
+sm = b.sms[0]
+for w in (3000, 3000, 3000, 3000):
+    sm.put(w)
+time.sleep_us(500)
+b.stop(0)
+time.sleep_ms(20)""")
+    r = chip.take()
+    assert len(r["pulses"]) == 1 and r["gate"][0] == 0  # the queued words never fired
+    chip.exec("b.set_amplitude(0, 1000)\nb.fire(0, 700)\ntime.sleep_ms(2)")
+    assert widths_us(chip.take()["pulses"]) == [700]
+
+
+def test_stop_when_idle_or_twice_keeps_the_gate_low_without_a_glitch(chip, cfg):
+    chip.exec("b.stop(0)\nb.stop(0)\nb.stop_all()\ntime.sleep_ms(5)")
+    r = chip.take()
+    assert r["edges"] == [] and r["gate"] == [0, 0]
+
+
+def test_the_board_calls_of_the_frame_allocate_nothing(chip, cfg):
+    """fire (accepted and refused), stop, set_amplitude and feed_watchdog under the heap lock."""
+    out = chip.exec("""
+b.refused = 0
+micropython.heap_lock()
+try:
+    for t in (100, 1000, 5, 9000):
+        b.set_amplitude(0, 1500)
+        b.fire(0, t)
+        b.stop(0)
+        b.feed_watchdog()
+    ok = 1
+except MemoryError:
+    ok = 0
+micropython.heap_unlock()
+print(ok, b.refused)""")
+    assert out.split() == ["1", "2"]
+    assert widths_us(chip.take()["pulses"]) == [100, 1000]
+
+
+def test_a_t_below_the_floor_that_gets_past_the_firmware_is_refused_by_the_board(chip, cfg):
+    """Defence in depth: even if the channel state held T = 5 us (the firmware's own
+    checks bypassed), the board fires nothing and the frame latches the channel."""
+    chip.load(0, rp_ohm=10000)
+    out = chip.exec("""
+b.refused = 0
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, 1, 50)
+buf = bytearray(hp.REPORT_LEN)
+for rep in (hp.cmd_calibrate(buf, hp.CH_ALL, 1000, 1000, -1670, 186000), hp.cmd_arm(bytearray(64), hp.CH_ALL)):
+    assert s.handle(rep, time.ticks_us()) == hp.RES_OK
+s.sync_outputs()
+s.run(2)
+c = s.chans[0]
+c.held = False
+c.t = 5
+s.run(3)
+print(b.refused, c.armed, c.stop == hp.STOP_NONE)""")
+    r = chip.take()
+    assert out.split() == ["1", "False", "False"]
+    assert all(w >= hp.T_FLOOR_US for w in widths_us(r["pulses"])) and len(r["pulses"]) == 2
+    assert r["gate"][0] == 0
