@@ -124,9 +124,10 @@ print(ok, b.refused)""")
     assert widths_us(chip.take()["pulses"]) == [100, 1000]
 
 
-def test_a_t_below_the_floor_that_gets_past_the_firmware_is_refused_by_the_board(chip, cfg):
-    """Defence in depth: even if the channel state held T = 5 us (the firmware's own
-    checks bypassed), the board fires nothing and the frame latches the channel."""
+def test_a_t_outside_the_range_that_gets_past_the_firmware_is_refused_by_the_board(chip, cfg):
+    """Defence in depth: the board's own check refuses T outside [T_FLOOR_US, HARD_T_MAX_US]
+    when called directly (the firmware's checks bypassed), and the firmware's last check
+    latches a channel whose state holds T = 5 us without calling the board at all."""
     chip.load(0, rp_ohm=10000)
     out = chip.exec("""
 b.refused = 0
@@ -136,12 +137,14 @@ for rep in (hp.cmd_calibrate(buf, hp.CH_ALL, 1000, 1000, -1670, 186000), hp.cmd_
     assert s.handle(rep, time.ticks_us()) == hp.RES_OK
 s.sync_outputs()
 s.run(2)
+n = [b.fire(0, t) for t in (5, hp.T_FLOOR_US - 1, 0, -1, cfg.HARD_T_MAX_US + 1)]
+direct = b.refused
 c = s.chans[0]
 c.held = False
 c.t = 5
 s.run(3)
-print(b.refused, c.armed, c.stop == hp.STOP_NONE)""")
+print(sum(n), direct, b.refused, c.armed, c.stop == hp.STOP_LIMIT)""")
     r = chip.take()
-    assert out.split() == ["1", "False", "False"]
+    assert out.split() == ["0", "5", "5", "False", "True"]
     assert all(w >= hp.T_FLOOR_US for w in widths_us(r["pulses"])) and len(r["pulses"]) == 2
     assert r["gate"][0] == 0

@@ -8,7 +8,7 @@ from .harness import BoardReset, make_board
 
 LOOP = """
 _feeder.deinit()  # from here only the loop feeds the watchdog
-s = stim.Stimulator(b, board_rp2.Clock(), cfg, 1, 50)
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, 1, 50, hp.KEEPALIVE_MAX_MS)  # no host here: the longest keep-alive
 buf = bytearray(hp.REPORT_LEN)
 for rep in (hp.cmd_calibrate(buf, hp.CH_ALL, 1000, 1000, -1670, 186000), hp.cmd_arm(bytearray(64), hp.CH_ALL)):
     assert s.handle(rep, time.ticks_us()) == hp.RES_OK
