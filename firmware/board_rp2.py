@@ -26,6 +26,33 @@ _FCS_THRESH_1 = const(0x1000000)
 _FCS_ERR_FLAGS = const(0xC00)  # UNDER | OVER, write 1 to clear
 _DREQ_ADC = const(36)
 _ADC_CLK_HZ = const(48000000)
+_WDT_CTRL = const(0x40058000)  # RP2040 datasheet 4.7.7: CTRL.ENABLE (bit 30) pauses the count when clear
+_WDT_ENABLE = const(0x40000000)
+
+
+def watchdog_pause():
+    """Pause the hardware watchdog (pico-sdk's watchdog_disable()). MicroPython's
+    WDT cannot be stopped, and a soft reset keeps it running: without this the
+    chip resets 500 ms after the loop stops, even with the REPL in use.
+    machine.WDT() enables it again (the next boot of the loop)."""
+    machine.mem32[_WDT_CTRL] = machine.mem32[_WDT_CTRL] & ~_WDT_ENABLE
+
+
+def watchdog_running():
+    return bool(machine.mem32[_WDT_CTRL] & _WDT_ENABLE)
+
+
+def outputs_off(cfg):
+    """Every stimulator output low, whatever state a failed set-up left: the PIO
+    state machines stopped and each gate and amplitude pin taken back from
+    PIO/PWM as a plain GPIO output driven low."""
+    for k in range(len(cfg.GATE_PINS)):
+        try:
+            rp2.StateMachine(k).active(0)
+        except Exception:  # never configured: nothing runs on it
+            pass
+    for pin in cfg.GATE_PINS + cfg.AMP_PWM_PINS:
+        machine.Pin(pin, machine.Pin.OUT, value=0)
 
 
 class Clock:
@@ -62,16 +89,19 @@ class Board:
         self.dma = rp2.DMA()
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
         self.overhead = pio_gate.GATE_OVERHEAD_US
-        self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
         self.usb = self._usb()
+        # last, once everything above worked: a failed set-up must not turn into a reset loop
+        self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
 
     def _usb(self):
         try:
             import usb.device
-            import usb_hid64
         except ImportError:
-            return None  # usb-device-hid not installed: run without telemetry
+            raise ImportError("usb-device is not installed on the board: run `steadytouch flash`")
+        import usb_hid64  # checks the usb-device-hid version
+
         hid = usb_hid64.Hid64()
+        # builtin_driver=True keeps the REPL's USB serial port beside the HID interface
         usb.device.get().init(hid, manufacturer_str="steadytouch", product_str="steadytouch stimulator",
                               id_vendor=hp.VID, id_product=hp.PID, builtin_driver=True)
         return hid
