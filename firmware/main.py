@@ -39,10 +39,14 @@ def report_error(when, e):
     head = "steadytouch %s stopped %s; every output is off, the REPL is free:\n" % (v, when)
     buf = io.StringIO()
     sys.print_exception(e, buf)
-    tb = buf.getvalue()
-    if len(head) + len(tb) > ERROR_LOG_MAX:
-        tb = "...\n" + tb[len(head) + len(tb) + 4 - ERROR_LOG_MAX:]
-    text = head + tb
+    lines = [ln if len(ln) <= 300 else ln[:297] + "..." for ln in buf.getvalue().splitlines()]
+    cut = False
+    while len(lines) > 3 and len(head) + sum(len(ln) + 1 for ln in lines) + 6 > ERROR_LOG_MAX:
+        lines.pop(1)  # the oldest frames go first; the newest and the message stay
+        cut = True
+    if cut:
+        lines.insert(1, "  ...")
+    text = head + "\n".join(lines) + "\n"
     sys.stdout.write(text)
     try:
         with open(ERROR_LOG, "w") as f:

@@ -200,7 +200,7 @@ class BoardLink:
         except (OSError, serial.SerialException, ValueError) as e:
             raise _classify_open_error(port, e) from None
         try:
-            self.t = SerialTransport(port, baudrate=115200)
+            self.t = SerialTransport(port, baudrate=115200, timeout=2)  # else a silent port blocks forever
         except TransportError as e:
             raise FlashError(f"cannot open {port}: {e}") from None
         try:
