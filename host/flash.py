@@ -279,23 +279,32 @@ class BoardState:
 
 def connect(port: str, timeout_s: float, tries: int = 3) -> tuple[BoardLink, BoardState]:
     """Stop whatever runs (Ctrl-C), pause a running watchdog at once, read the state.
-    A board in a reset loop gives only a short window: retried a few times."""
-    last = None
-    for _ in range(tries):
+    A board in a reset loop gives only a short window and drops the link at each reset:
+    dropped links and a vanished port are tried again (up to 4x `tries`), a board that
+    does not answer `tries` times."""
+    import serial
+
+    last, silent = None, 0
+    for _ in range(4 * tries):
+        link = None
         try:
             link = BoardLink(port, timeout_s)
-        except FlashError as e:
-            if "does not answer" not in str(e):
-                raise  # busy, no board, no permission: trying again does not help
-            last = e
-            time.sleep(0.3)
-            continue
-        try:
             link.exec(_PAUSE)
             return link, BoardState.read(link)
         except FlashError as e:
-            link.close()
+            if "busy" in str(e) or "permission" in str(e):
+                raise  # trying again does not help
             last = e
+            if "does not answer" in str(e):
+                silent += 1
+                if silent >= tries:
+                    break
+        except (OSError, serial.SerialException) as e:  # the board left the bus (a reset) mid-way
+            last = FlashError(f"the link to {port} dropped ({e}) again and again: is the board resetting in a "
+                              "loop? See \"Recover a board\" in docs/hardware.md")
+        if link is not None:
+            link.close()
+        time.sleep(0.3)
     raise last
 
 
@@ -319,6 +328,10 @@ class Options:
     dry_run: bool = False
     boot_timeout_s: float = 30.0
     lib_url: str = boardlib.URL
+
+
+def _n(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
 
 
 def _step(say, n: int, text: str) -> None:
@@ -394,7 +407,7 @@ def _deploy(link: BoardLink, b: Build, say) -> None:
         link.write(p, b.files[p].read_bytes())
     if change_libs:
         unknown = sum(1 for p in change_libs if have[p] is not None)
-        _step(say, 5, f"libraries on the board: installed {len(change_libs)} files into /lib/usb/device"
+        _step(say, 5, f"libraries on the board: installed {_n(len(change_libs), 'file')} into /lib/usb/device"
               + (f" ({unknown} replaced: not the pinned version)" if unknown else ""))
     else:
         _step(say, 5, f"libraries on the board: {boardlib.NAME}, all {len(libs)} files up to date")
@@ -410,7 +423,7 @@ def _deploy(link: BoardLink, b: Build, say) -> None:
                          "run flash again")
     link.remove([ERROR_LOG])
     gone = f", removed {len(present)} shadowing .py" if present else ""
-    _step(say, 6, f"firmware: copied {len(order)} files, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
+    _step(say, 6, f"firmware: copied {_n(len(order), 'file')}, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
 
 
 def boot_check(port: str, timeout_s: float, say) -> BoardState:
