@@ -280,8 +280,7 @@ class BoardState:
 def connect(port: str, timeout_s: float, tries: int = 3) -> tuple[BoardLink, BoardState]:
     """Stop whatever runs (Ctrl-C), pause a running watchdog at once, read the state.
     A board in a reset loop gives only a short window and drops the link at each reset:
-    dropped links and a vanished port are tried again (up to 4x `tries`), a board that
-    does not answer `tries` times."""
+    dropped links are tried again (up to 4x `tries`), a silent or absent board `tries` times."""
     import serial
 
     last, silent = None, 0
@@ -295,7 +294,7 @@ def connect(port: str, timeout_s: float, tries: int = 3) -> tuple[BoardLink, Boa
             if "busy" in str(e) or "permission" in str(e):
                 raise  # trying again does not help
             last = e
-            if "does not answer" in str(e):
+            if "does not answer" in str(e) or "no board" in str(e):
                 silent += 1
                 if silent >= tries:
                     break
@@ -369,7 +368,7 @@ def flash(o: Options, say=print) -> BoardState | None:
             raise FlashError("the pinned libraries are missing (step 2): flash would stop there")
         return None
     port = o.port or find_port()
-    link, st = connect(port, timeout_s=10)
+    link, st = connect(port, timeout_s=6)
     try:
         _check_board(st, port)
         was = f"stopped steadytouch {st.fw_text()} ({st.frames} frames)" if st.frames is not None else \
@@ -430,14 +429,14 @@ def boot_check(port: str, timeout_s: float, say) -> BoardState:
     """Reset, let the firmware boot and run, stop it with Ctrl-C, read what it did, reset it to run.
     The board's prints after its USB re-enumeration do not reach a host reliably, so the check
     waits, then looks; a Ctrl-C that lands before the loop started means: boot again, wait longer."""
-    link, _ = connect(port, timeout_s=10)
+    link, _ = connect(port, timeout_s=6)
     link.reset()
     t_end = time.monotonic() + timeout_s
     wait_s = 2.0
     while True:
         time.sleep(min(wait_s, max(0.0, t_end - time.monotonic())))
         try:
-            link, st = connect(port, timeout_s=10)
+            link, st = connect(port, timeout_s=6)
         except FlashError as e:
             if time.monotonic() < t_end and ("does not answer" in str(e) or "no board" in str(e)):
                 wait_s = 1.0
