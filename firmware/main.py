@@ -184,6 +184,40 @@ def _all_off(board_rp2, s):
         board_rp2.outputs_off(cfg)
 
 
+class CtrlC:
+    """Ctrl-C read from the serial port between frames, instead of MicroPython's
+    KeyboardInterrupt: that one is raised wherever the interpreter is, and one
+    that lands in a USB transfer callback is printed and swallowed by the USB
+    stack while the loop runs on (seen on the emulated Pico)."""
+
+    def __init__(self, stream=None):
+        import select
+
+        stream = stream or sys.stdin
+        self.poller = select.poll()
+        self.poller.register(stream, select.POLLIN)
+        self.rd = getattr(stream, "buffer", stream)
+        self.c3 = b"\x03" if self.rd is not stream else "\x03"
+
+    def pressed(self):
+        """Allocates nothing while no byte waits; reads one byte when one does."""
+        for _ in self.poller.ipoll(0):
+            return self.rd.read(1) == self.c3
+        return False
+
+
+def run_until_ctrl_c(s, ctrl_c):
+    """Frame after frame on the same deadline grid until Ctrl-C arrives."""
+    import micropython
+
+    micropython.kbd_intr(-1)  # Ctrl-C is now a byte on stdin, read by ctrl_c
+    try:
+        while not ctrl_c.pressed():
+            s.run(1)
+    finally:
+        micropython.kbd_intr(3)
+
+
 def main_rp2():
     """Boot the stimulator. Safe and recoverable (docs/hardware.md, "Boot and
     maintenance"): the watchdog starts only once the board is set up; an error
@@ -201,8 +235,9 @@ def main_rp2():
         s = stim.Stimulator(board, board_rp2.Clock(), cfg)
         stim.RUNNING = s  # what `steadytouch flash` reads back over the REPL after its Ctrl-C
         print("steadytouch %d.%d.%d running; Ctrl-C stops stimulation and frees the REPL" % stim.FW_VERSION)
-        s.run()
-    except KeyboardInterrupt:
+        run_until_ctrl_c(s, CtrlC())
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:  # from run_until_ctrl_c, or a Ctrl-C during the set-up
         unlock_heap()
         board_rp2.watchdog_pause()
         _all_off(board_rp2, s)

@@ -101,6 +101,11 @@ def test_ctrl_c_stops_stimulation_and_keeps_the_repl_without_a_watchdog_reset(pi
     assert p.returncode == 0, p.stderr
     funcsel, out_bits, sm_enabled = p.stdout.split("] ")[0] + "]", *p.stdout.split("] ")[1].split()
     assert set(ast.literal_eval(funcsel)) == {5} and int(out_bits) == 0 and int(sm_enabled) == 0, p.stdout
+    # the loop's Ctrl-C check, on the chip: allocates nothing while no byte waits
+    p = mpremote(pico, "exec", "import st_main, micropython\nc = st_main.CtrlC()\nwhile c.pressed():\n    pass\n"
+                 "k = 0\nr = None\nmicropython.heap_lock()\nwhile k < 200:\n    r = c.pressed()\n    k += 1\n"
+                 "micropython.heap_unlock()\nprint('no allocation', r)")
+    assert p.stdout.strip() == "no allocation False", p.stdout + p.stderr
     assert resets(pico) == 0, pico.stderr()[-1500:]
     # a soft reset (mpremote's default) keeps the watchdog paused; the first one may lose the port while
     # the board's USB re-enumerates, so it is tried twice

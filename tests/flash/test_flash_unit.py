@@ -256,3 +256,34 @@ def test_a_boot_error_is_printed_logged_capped_and_leaves_outputs_off(tmp_path, 
     assert "OSError" in text and text in p.stdout
     assert len(text) <= 2048
     assert p.stdout.strip().endswith("['pause', 'pause', 'off']")
+
+
+CTRL_C_PROBE = """
+import sys, time, micropython
+import main
+class S:
+    n = 0
+    def run(self, k):
+        self.n += k
+        time.sleep_ms(1)
+c = main.CtrlC()
+assert c.pressed() is False        # nothing waiting (allocation: the unix port's poll allocates, the rp2's
+print('ready')                     # does not: checked on the emulated Pico, test_flash_emulated.py)
+s = S()
+main.run_until_ctrl_c(s, c)
+rest = sys.stdin.buffer.read(2)    # what follows Ctrl-C stays for the REPL (mpremote's Ctrl-A)
+print('stopped', s.n > 0, rest)
+"""
+
+
+def test_ctrl_c_is_read_between_frames(tmp_path, micropython):
+    (tmp_path / "probe.py").write_text(CTRL_C_PROBE)
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
+    p = subprocess.Popen([micropython, str(tmp_path / "probe.py")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, env=env)
+    assert p.stdout.readline() == b"ready\n"
+    p.stdin.write(b"ab\r\x03\r\x01")  # mpremote: Ctrl-C, then Ctrl-A for the raw REPL
+    p.stdin.flush()
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 0, err
+    assert out.decode().strip() == "stopped True b'\\r\\x01'"
