@@ -443,9 +443,9 @@ def boot_check(port: str, timeout_s: float, say) -> BoardState:
                 continue  # still re-enumerating
             raise FlashError(f"after its reset the board did not come back on {port} within {timeout_s:.0f} s "
                              f"(--boot-timeout-s): {e}") from None
-        if st.frames or st.log or st.fw is None or time.monotonic() + 2 * wait_s > t_end:
+        if st.frames or st.log or time.monotonic() + 2 * wait_s > t_end:
             break
-        link.reset()  # stopped before its first frame: boot again, wait longer
+        link.reset()  # stopped before its first frame (or while importing): boot again, wait longer
         wait_s *= 2
     try:
         if st.log:
