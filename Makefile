@@ -33,9 +33,11 @@ example: setup
 mpy: setup
 	$(BIN)/steadytouch flash --build-only --build-dir build/device
 
-## flash: compile, deploy to a connected Pico with mpremote (installs usb-device-hid with mip), read the version back
+## flash: compile, deploy to a Pico over its serial REPL with the pinned USB libraries (offline), check it boots
+##        and read the version back. Optional: PORT=/dev/ttyACM0 (or socket://127.0.0.1:N), LIB_DIR=folder with
+##        the pinned usb-device sources, FLASH_ARGS=--online (fetch them once) or --dry-run
 flash: setup
-	$(BIN)/steadytouch flash --build-dir build/device
+	$(BIN)/steadytouch flash --build-dir build/device $(if $(PORT),--port $(PORT)) $(if $(LIB_DIR),--lib-dir $(LIB_DIR)) $(FLASH_ARGS)
 
 ## chip: the real firmware and board layer on an emulated RP2040 (rp2040js; needs ../shared/emulator and Node >= 20): chip tests, then bench/chip.py
 chip: setup

@@ -30,6 +30,33 @@ _T_FLOOR_US = hp.T_FLOOR_US
 # Instructions executed directly by stop(), encoded once at import (nothing per call)
 _PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
 _SET_PINS_0 = rp2.asm_pio_encode("set(pins, 0)", 0)
+_WDT_CTRL = const(0x40058000)  # RP2040 datasheet 4.7.7: CTRL.ENABLE (bit 30) pauses the count when clear
+_WDT_ENABLE = const(0x40000000)
+
+
+def watchdog_pause():
+    """Pause the hardware watchdog (pico-sdk's watchdog_disable()). MicroPython's
+    WDT cannot be stopped, and a soft reset keeps it running: without this the
+    chip resets 500 ms after the loop stops, even with the REPL in use.
+    machine.WDT() enables it again (the next boot of the loop)."""
+    machine.mem32[_WDT_CTRL] = machine.mem32[_WDT_CTRL] & ~_WDT_ENABLE
+
+
+def watchdog_running():
+    return bool(machine.mem32[_WDT_CTRL] & _WDT_ENABLE)
+
+
+def outputs_off(cfg):
+    """Every stimulator output low, whatever state a failed set-up left: the PIO
+    state machines stopped and each gate and amplitude pin taken back from
+    PIO/PWM as a plain GPIO output driven low."""
+    for k in range(len(cfg.GATE_PINS)):
+        try:
+            rp2.StateMachine(k).active(0)
+        except Exception:  # never configured: nothing runs on it
+            pass
+    for pin in cfg.GATE_PINS + cfg.AMP_PWM_PINS:
+        machine.Pin(pin, machine.Pin.OUT, value=0)
 
 
 class Clock:
@@ -67,21 +94,40 @@ class Board:
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
-        self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
         self.usb = self._usb()
+        # last, once everything above worked: a failed set-up must not turn into a reset loop
+        self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
 
     def _usb(self):
         try:
             import usb.device
-            import usb_hid64
         except ImportError:
-            return None  # usb-device-hid not installed: run without telemetry
+            raise ImportError("usb-device is not installed on the board: run `steadytouch flash`")
+        import usb_hid64  # checks the usb-device-hid version
+
         hid = usb_hid64.Hid64()
+        # builtin_driver=True keeps the REPL's USB serial port beside the HID interface
         usb.device.get().init(hid, manufacturer_str="steadytouch", product_str="steadytouch stimulator",
                               id_vendor=hp.VID, id_product=hp.PID, builtin_driver=True)
         return hid
 
     # ------------------------------------------------------------ board API
+    def irq_off(self):
+        """Interrupts off for one heap-locked section of the frame (stim._enter).
+        The USB stack's interrupt schedules Python callbacks (usb-device) that
+        allocate; one that ran inside a heap-locked section failed with
+        MemoryError and the HID interface never opened (seen on the emulated
+        chip). With interrupts off nothing new is scheduled, and the loop below
+        is a jump: the VM runs what was already pending there, before the lock."""
+        state = machine.disable_irq()
+        k = 0
+        while k < 1:
+            k += 1
+        return state
+
+    def irq_on(self, state):
+        machine.enable_irq(state)
+
     def set_amplitude(self, ch, i_ua):
         if i_ua > self.amp_full:
             i_ua = self.amp_full

@@ -15,10 +15,63 @@
 # allowed only here on the simulator's command line, never over the wire).
 import sys
 
-import board_config as cfg
-import hid_protocol as hp
-import sensation_core as sc
-import stim
+# On the rp2 a boot error is printed on the serial port and kept here (the
+# newest one, at most ERROR_LOG_MAX bytes); `steadytouch flash` shows it.
+ERROR_LOG = "/last_error.txt"
+ERROR_LOG_MAX = 2048
+
+
+def unlock_heap():
+    """Undo every heap_lock(): a Ctrl-C or an error can land inside a heap-locked section."""
+    try:
+        import micropython
+    except ImportError:
+        return
+    micropython.heap_lock()
+    d = micropython.heap_unlock()  # the depth before our lock (returns a small int: no allocation)
+    while d:
+        d = micropython.heap_unlock()
+
+
+def report_error(when, e):
+    """Print an error on the serial port and keep it in ERROR_LOG."""
+    import io
+
+    unlock_heap()
+    try:
+        import stim as _s
+
+        v = "%d.%d.%d" % _s.FW_VERSION
+    except Exception:
+        v = "?"
+    head = "steadytouch %s stopped %s; every output is off, the REPL is free:\n" % (v, when)
+    buf = io.StringIO()
+    sys.print_exception(e, buf)
+    lines = [ln if len(ln) <= 300 else ln[:297] + "..." for ln in buf.getvalue().splitlines()]
+    cut = False
+    while len(lines) > 3 and len(head) + sum(len(ln) + 1 for ln in lines) + 6 > ERROR_LOG_MAX:
+        lines.pop(1)  # the oldest frames go first; the newest and the message stay
+        cut = True
+    if cut:
+        lines.insert(1, "  ...")
+    text = head + "\n".join(lines) + "\n"
+    sys.stdout.write(text)
+    try:
+        with open(ERROR_LOG, "w") as f:
+            f.write(text)
+    except OSError:  # a full or broken filesystem: the serial port has it
+        pass
+
+
+try:
+    import board_config as cfg
+    import hid_protocol as hp
+    import sensation_core as sc
+    import stim
+except ImportError as e:  # on the board: a file missing from its flash (run `steadytouch flash`)
+    if sys.platform == "rp2":
+        report_error("at boot", e)
+    raise
 
 USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels 1-4] [--rate 10-100]"
           " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]"
@@ -148,15 +201,85 @@ def main_sim(argv):
     return 0
 
 
+def _all_off(board_rp2, s):
+    """Latch every channel and drive every output low, whatever failed."""
+    try:
+        if s is not None:
+            if s.locked:  # stopped inside a frame section: interrupts back on (stim._leave)
+                s.locked = 0
+                if s._irq_on is not None:
+                    s._irq_on(0)
+            s.stop_all(hp.STOP_INTERNAL)
+    finally:
+        board_rp2.outputs_off(cfg)
+
+
+class CtrlC:
+    """Ctrl-C read from the serial port between frames, instead of MicroPython's
+    KeyboardInterrupt: that one is raised wherever the interpreter is, and one
+    that lands in a USB transfer callback is printed and swallowed by the USB
+    stack while the loop runs on (seen on the emulated Pico)."""
+
+    def __init__(self, stream=None):
+        import select
+
+        stream = stream or sys.stdin
+        self.poller = select.poll()
+        self.poller.register(stream, select.POLLIN)
+        self.rd = getattr(stream, "buffer", stream)
+        self.c3 = b"\x03" if self.rd is not stream else "\x03"
+
+    def pressed(self):
+        """Allocates nothing while no byte waits; reads one byte when one does."""
+        for _ in self.poller.ipoll(0):
+            return self.rd.read(1) == self.c3
+        return False
+
+
+def run_until_ctrl_c(s, ctrl_c):
+    """Frame after frame on the same deadline grid until Ctrl-C arrives."""
+    import micropython
+
+    micropython.kbd_intr(-1)  # Ctrl-C is now a byte on stdin, read by ctrl_c
+    try:
+        while not ctrl_c.pressed():
+            s.run(1)
+    finally:
+        micropython.kbd_intr(3)
+
+
 def main_rp2():
+    """Boot the stimulator. Safe and recoverable (docs/hardware.md, "Boot and
+    maintenance"): the watchdog starts only once the board is set up; an error
+    at boot or outside a frame leaves every output off, pauses the watchdog and
+    returns to the REPL (no reset loop) after reporting; Ctrl-C on the serial
+    port (what mpremote sends first) stops stimulation the same way, so a
+    running board can always be reached. Stimulation needs this loop to push
+    every pulse, so nothing is stimulated while the REPL has the board."""
     import board_rp2
 
-    board = board_rp2.Board(cfg)
-    s = stim.Stimulator(board, board_rp2.Clock(), cfg)
+    board_rp2.watchdog_pause()  # still running after a soft reset: no reset while we set up
+    s = None
     try:
-        s.run()
-    finally:
-        board.stop_all()
+        board = board_rp2.Board(cfg)  # enables the watchdog last
+        s = stim.Stimulator(board, board_rp2.Clock(), cfg)
+        stim.RUNNING = s  # what `steadytouch flash` reads back over the REPL after its Ctrl-C
+        print("steadytouch %d.%d.%d running; Ctrl-C stops stimulation and frees the REPL" % stim.FW_VERSION)
+        run_until_ctrl_c(s, CtrlC())
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:  # from run_until_ctrl_c, or a Ctrl-C during the set-up
+        unlock_heap()
+        board_rp2.watchdog_pause()
+        _all_off(board_rp2, s)
+        print("steadytouch: stopped by Ctrl-C; every output is off, the watchdog is paused. "
+              "machine.reset() starts the stimulator again")
+    except BaseException as e:  # a boot error, or one outside a frame (stim.run handles those inside)
+        unlock_heap()
+        board_rp2.watchdog_pause()
+        try:
+            _all_off(board_rp2, s)
+        finally:
+            report_error("at boot" if s is None or not s.started else "while running", e)
 
 
 if sys.platform == "rp2":

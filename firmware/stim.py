@@ -6,6 +6,9 @@
 # Every firmware section of the frame runs between heap_lock()/heap_unlock()
 # (on the device too): it allocates nothing, and large function frames go on
 # the C stack instead of the heap. Board calls sit between those sections.
+# A board whose interrupts schedule Python callbacks that allocate (the rp2's
+# USB stack) provides irq_off()/irq_on(state): a section then runs with
+# interrupts held off, so no such callback can land inside it.
 import sensation_core as sc
 import hid_protocol as hp
 
@@ -109,6 +112,9 @@ class Stimulator:
         self.acks = 0
         self.n_cmds = 0
         self.locked = 0
+        self._irq_off = getattr(board, "irq_off", None)  # bound once here: calling it allocates nothing
+        self._irq_on = getattr(board, "irq_on", None)
+        self._irq = 0
         self.started = False
         self.deadline = 0
         self.errors = 0
@@ -188,12 +194,16 @@ class Stimulator:
 
     def _enter(self):
         """Start a firmware section: nothing in it may allocate (raises MemoryError)."""
+        if self._irq_off is not None:
+            self._irq = self._irq_off()
         _lock()
         self.locked = 1
 
     def _leave(self):
         self.locked = 0
         _unlock()
+        if self._irq_on is not None:
+            self._irq_on(self._irq)
 
     # -------------------------------------------------------------- safety
     def _latch(self, c, reason):

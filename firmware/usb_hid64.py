@@ -1,8 +1,12 @@
 # A vendor-defined USB HID interface with 64-byte interrupt IN and OUT
-# endpoints, on micropython-lib's usb-device-hid (installed on the board with
-# `mpremote mip install usb-device-hid`; its stock HIDInterface has one 8-byte
-# IN endpoint only). IN reports are copied into a ring of slots and sent one
-# at a time; OUT reports land in a ring that the frame polls.
+# endpoints, on micropython-lib's usb-device-hid (`steadytouch flash` installs
+# the pinned usb-device 0.2.1 + usb-device-hid 0.1.2; its stock HIDInterface has
+# one 8-byte IN endpoint only). IN reports are copied into a ring of slots and
+# sent one at a time; OUT reports land in a ring that the frame polls.
+#
+# Works with usb-device-hid 0.1.2 and 0.2.0: the endpoint descriptors and their
+# polling interval are our own (0.1.2 has no interval argument, 0.2.0 names it
+# interval_ms), so only arguments both versions take go to HIDInterface.
 from micropython import const
 
 from usb.device.hid import HIDInterface
@@ -11,15 +15,21 @@ import hid_protocol as hp
 
 _EP_IN_FLAG = const(0x80)
 _SLOTS = const(16)
+INTERVAL_MS = const(1)  # bInterval of both interrupt endpoints (full speed: ms)
+
+# what this module uses of the library; a version without it is refused by name
+for _name in ("get_hid_descriptor", "submit_xfer", "xfer_pending", "is_open", "on_open", "on_set_report"):
+    if not hasattr(HIDInterface, _name):
+        raise ImportError("usb-device-hid on the board has no HIDInterface.%s: steadytouch needs usb-device-hid "
+                          "0.1.2 (pinned) or 0.2.0; run `steadytouch flash` to install the pinned version" % _name)
 
 
 class Hid64(HIDInterface):
     def __init__(self):
         # no interval argument: usb-device-hid 0.1.2 has none, 0.2.0 has interval_ms;
-        # this class writes its own endpoint descriptors with self.binterval
+        # this class writes its own endpoint descriptors with INTERVAL_MS
         super().__init__(hp.REPORT_DESCRIPTOR, set_report_buf=bytearray(hp.REPORT_LEN),
                          interface_str="steadytouch")
-        self.binterval = 1  # ms between IN/OUT polls
         self._out_ep = None
         self._rx_xfer = bytearray(hp.REPORT_LEN)
         self._rx = [bytearray(hp.REPORT_LEN) for _ in range(_SLOTS)]
@@ -40,8 +50,8 @@ class Hid64(HIDInterface):
         self.get_hid_descriptor(desc)
         self._int_ep = ep_num | _EP_IN_FLAG
         self._out_ep = ep_num
-        desc.endpoint(self._int_ep, "interrupt", hp.REPORT_LEN, self.binterval)
-        desc.endpoint(self._out_ep, "interrupt", hp.REPORT_LEN, self.binterval)
+        desc.endpoint(self._int_ep, "interrupt", hp.REPORT_LEN, INTERVAL_MS)
+        desc.endpoint(self._out_ep, "interrupt", hp.REPORT_LEN, INTERVAL_MS)
         self.idle_rate = 0
         self.protocol = 1
 

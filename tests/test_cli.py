@@ -164,11 +164,12 @@ def test_monitor_plot_without_a_display_is_one_line():
     assert p.returncode == 2 and "--plot needs a display" in p.stderr and "Traceback" not in p.stderr
 
 
-def test_flash_dry_run_lists_files_and_commands(tmp_path):
-    p = run("flash", "--dry-run", "--build-dir", str(tmp_path / "dev"))
+def test_flash_dry_run_lists_files_and_commands(tmp_path):  # more in tests/flash/
+    p = subprocess.run([EXE, "flash", "--dry-run", "--online", "--build-dir", str(tmp_path / "dev")], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120, env=dict(os.environ, XDG_CACHE_HOME=str(tmp_path)))
     assert p.returncode == 0, p.stderr
     assert "sensation_core.mpy" in p.stdout and "stim.mpy" in p.stdout and "main.py" in p.stdout
-    assert "board_sim" not in p.stdout and "mip install usb-device-hid" in p.stdout
+    assert "board_sim" not in p.stdout and "would download usb-device 0.2.1 + usb-device-hid 0.1.2" in p.stdout
 
 
 def test_sim_writes_csv_png_and_summary(tmp_path):
