@@ -9,33 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from steadytouch.rangecheck import RangeError, Tracker, load_instrumented
+from steadytouch.rangecheck import RangeError, load_instrumented
 
 from conftest import SHARED
 from strategies import scenario, skin_model
 
-CORE_MODULES = ("fixmath", "skin_model", "fast_step", "sensation_core")  # each imports only those before it
-
-
-def load_core():
-    """The core and the modules it imports, all instrumented, sharing one tracker: while
-    each loads, the instrumented modules before it stand in sys.modules, so its
-    `from fixmath import ...` binds the checked functions (sys.modules is restored)."""
-    track = Tracker()
-    saved = {name: sys.modules.get(name) for name in CORE_MODULES}
-    mods = {}
-    try:
-        for name in CORE_MODULES:
-            mods[name], _ = load_instrumented(SHARED / f"{name}.py", name, track)
-            sys.modules[name] = mods[name]
-    finally:
-        for name, m in saved.items():
-            if m is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = m
-    return mods, track
-
+sys.path.insert(0, str(SHARED.parent / "bench"))
+from core_checked import CORE_MODULES, load_core  # noqa: E402
 
 MODS, TRACK = load_core()
 CORE = MODS["sensation_core"]
