@@ -17,9 +17,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "shared"))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
 
 import sensation_core as sc  # noqa: E402
-from steadytouch.rangecheck import load_instrumented  # noqa: E402
+from core_checked import load_core  # noqa: E402
 from steadytouch.reference import Calibration, Limits, exact_step  # noqa: E402
 
 
@@ -28,7 +29,8 @@ def main():
     ap.add_argument("--n", type=int, default=50000)
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args()
-    core, track = load_instrumented(ROOT / "shared/sensation_core.py", "core_checked")
+    mods, track = load_core()  # sensation_core and the modules it imports, all checked
+    core = mods["sensation_core"]
     rng = np.random.default_rng(a.seed)
     lim = Limits(1, sc.I_LIMIT_UA, 1, sc.T_LIMIT_US, sc.Q_LIMIT_PC)
     worst_i = worst_t = 0.0

@@ -96,7 +96,8 @@ def main():
     ap.add_argument("--n", type=int, default=20000, help="updates per timing run (default 20000)")
     n = ap.parse_args().n
     with tempfile.TemporaryDirectory() as d:
-        subprocess.run([str(BIN / "mpy-cross"), "-o", f"{d}/sensation_core.mpy", str(ROOT / "shared/sensation_core.py")], check=True)
+        for m in ("sensation_core", "fixmath", "fast_step", "skin_model"):  # the core and its modules
+            subprocess.run([str(BIN / "mpy-cross"), "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")], check=True)
         Path(d, "b.py").write_text(MP_SCRIPT.replace("NN_PLACEHOLDER", str(n)))
         env = dict(os.environ, MICROPYPATH=d)
         out = subprocess.run([str(BIN / "micropython"), f"{d}/b.py"], capture_output=True, text=True, env=env, check=True)

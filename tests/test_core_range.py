@@ -1,6 +1,8 @@
 """Every intermediate of calibrate/update stays below 2**30 (RP2040 small ints)."""
 
+import ast
 import itertools
+import sys
 import textwrap
 
 import pytest
@@ -12,7 +14,27 @@ from steadytouch.rangecheck import RangeError, load_instrumented
 from conftest import SHARED
 from strategies import scenario, skin_model
 
-CORE, TRACK = load_instrumented(SHARED / "sensation_core.py", "sensation_core_checked")
+sys.path.insert(0, str(SHARED.parent / "bench"))
+from core_checked import CORE_MODULES, load_core  # noqa: E402
+
+MODS, TRACK = load_core()
+CORE = MODS["sensation_core"]
+FAST = MODS["fast_step"]
+
+
+def test_every_module_the_core_imports_is_instrumented():
+    """The core's shared imports are all in CORE_MODULES, and what they bind is the checked code."""
+    for name in CORE_MODULES:
+        tree = ast.parse((SHARED / f"{name}.py").read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (SHARED / f"{node.module}.py").exists():
+                assert node.module in CORE_MODULES[: CORE_MODULES.index(name)], (name, node.module)
+                for a in node.names:
+                    got = getattr(MODS[name], a.asname or a.name)
+                    assert got is getattr(MODS[node.module], a.name), (name, a.name)
+                    if isinstance(got, type(load_core)):  # a function: its module is the checked one
+                        assert got.__globals__["__rangecheck__"] is TRACK, (name, a.name)
+    assert CORE.Controller(1, 10, 1, 10, 100).skin.__class__ is MODS["skin_model"].SkinModel
 
 
 def run_case(lim, cal, rps, mode=None, skin=None):
@@ -109,13 +131,13 @@ def test_fast_step_intermediates_below_2_30(data):
     c.set_mode(CORE.MODE_FAST)
     q = st.integers(1, lim.q_max_pc)
     rp = st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)
-    c._fok = data.draw(st.integers(0, 1))  # 0: the prior's step, 1: the secant's
+    c.before.clean = data.draw(st.integers(0, 1))  # 0: the prior's step, 1: the secant's
     c.status = data.draw(st.sampled_from([sc.ST_OK, sc.ST_T_MAX]))  # the prior on the mE curve or the ceiling
-    c._fq = data.draw(st.one_of(q, st.just(0)))
-    c._frp = data.draw(rp)
-    qf = data.draw(st.integers(1, c._qcap))
-    q_new = c._fast(qf, data.draw(q), data.draw(rp))
-    assert 0 < q_new <= c._qcap + 1
+    c.before.q_pc = data.draw(st.one_of(q, st.just(0)))
+    c.before.rp_ohm = data.draw(rp)
+    qf = data.draw(st.integers(1, c._q_max_q4))
+    q_new = FAST.newton(c, qf, data.draw(q), data.draw(rp))
+    assert 0 < q_new <= c._q_max_q4 + 1
 
 
 

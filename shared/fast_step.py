@@ -1,0 +1,205 @@
+"""fast_step: MODE_FAST's next pulse (docs/controller.md, "MODE_FAST").
+
+The paper's law is the fixed-point iteration Q(k+1) = L(Rp(Q_k)). MODE_FAST reaches
+the same fixed point sooner: a Newton step on the loop linearised around the last
+pulse (newton), a prediction of a falling drift (drift), the law solved on a skin
+model when one is set (skin_model.SkinModel.jump), and a correction when the paper's
+step enters the duration ceiling (fast_pulse). It then goes through the very same
+Eq. 4 and bounds as the paper's mode (Controller._from_q).
+
+Functions of the Controller `c`, not methods: the core stays the paper's law. State
+used here: c.before (the pulse measured before the one just measured) and
+c.drift_ohm. Every intermediate is below 2**30; nothing is allocated.
+"""
+
+try:
+    from micropython import const
+except ImportError:  # CPython
+
+    def const(x):
+        return x
+
+
+from fixmath import frac12, muldiv
+
+# the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE curve, in Q.12
+# (0.45: the current exponent beta >= 0.5 less the series resistance)
+FAST_ELASTICITY_Q12 = const(1843)
+
+# sensation_core's values: a const() is folded only inside its own module, and importing
+# the core's would be a dictionary lookup per use on the chip (and a circular import);
+# tests/test_core_split.py checks that they agree.
+_ST_OK = const(0)
+_ST_T_MAX = const(0x008)
+_RP_MIN_OHM = const(500)
+_RP_MAX_OHM = const(200000)
+_SAT30 = const(0x3FFFFFFF)
+_MQ_CAP = const(0x1FFFFFFF)
+_NO_G = const(0x8000)  # "no estimate of the loop gain"
+
+
+class Pulse:
+    """A pulse the controller measured Rp on (c.before: the one before the last)."""
+
+    def __init__(self):
+        self.i_ua = 0
+        self.t_us = 0
+        self.q_pc = 0  # i_ua * t_us
+        self.rp_ohm = 0  # the Rp measured on it; 0: no such pulse (reset)
+        self.clean = 0  # 1: the step computed from it was clean (no fault, no bound)
+
+
+def least_elastic(x):
+    """x * FAST_ELASTICITY_Q12 / 2**12, floored, for 0 <= x < 2**30 (split: < 2**30)."""
+    return (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
+
+
+def fast_pulse(c, qf, q_k, rp_ohm):
+    """MODE_FAST's next pulse from the paper's step qf (1/16 pC), for the pulse of charge
+    q_k just measured (c.i_ua, c.t_us, c.status) with Rp = rp_ohm: the drift
+    prediction, then a jump that stays on the path of the measured pulse (mE curve or
+    duration ceiling): on the skin model, else a Newton step; else the paper's step,
+    corrected when it enters the ceiling from a higher current. Returns the status."""
+    i_k = c.i_ua  # the measured pulse (_from_q reads it: restored for a retry)
+    t_k = c.t_us
+    s_k = c.status
+    ceiling = s_k & _ST_T_MAX
+    rp_at = drift(c, q_k, rp_ohm)
+    if rp_at != rp_ohm:
+        qf = c._line(rp_at)
+    model = c.skin
+    jumped = model.jumped
+    model.jumped = 0
+    # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
+    # where I and T are split for the charge, 1/2 us): the paper's step
+    dq = qf - (q_k << 4)  # 1/16 pC
+    if (dq if dq >= 0 else -dq) >= (i_k + (0 if ceiling else t_k)) << 3:
+        if model.on and q_k > 0:
+            st = model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c.before)
+            if st >= 0:
+                return st
+            c._measured(i_k, t_k, s_k)
+        q_new = newton(c, qf, q_k, rp_ohm)
+        if q_new != qf:
+            st = c._from_q(q_new)
+            if (st & _ST_T_MAX) == ceiling:
+                if c.fast_jumps < _SAT30:  # a counter must never become a long int
+                    c.fast_jumps += 1
+                return st
+            c._measured(i_k, t_k, s_k)
+    st = c._from_q(qf)
+    i = c.i_ua
+    if st == _ST_T_MAX and not ceiling and i < i_k:
+        # entering the ceiling from the mE curve at a lower current I: Rp will rise
+        # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
+        # of the law on that Rp (I < 2**10: the divisor scaled into muldiv's range)
+        if i < 1024:
+            dr = muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
+        else:
+            dr = muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
+        rp2 = rp_ohm + least_elastic(dr)
+        if rp2 <= _RP_MAX_OHM:
+            c._measured(i_k, t_k, s_k)
+            st = c._from_q(c._line(rp2))
+    return st
+
+
+def newton(c, qf, q_k, rp_ohm):
+    """A Newton step towards the self-consistent charge (1/16 pC), or qf.
+
+    With the skin's response to charge along the mE curve linearised, slope
+    s = dRp/dQ, the fixed point of Q = L(Rp(Q)) is Q* = (L(Rp_k) - G Q_k) / (1 - G),
+    G = mQ s. G comes from the last two pulses (a secant) when they are a
+    trustworthy pair, else from the skin's least elasticity (FAST_ELASTICITY_Q12,
+    a lower bound on G: the step then never passes the fixed point of a skin
+    that follows the model). docs/controller.md gives the rules; the paper's
+    step L(Rp_k) (= qf) is returned whenever neither applies.
+    """
+    if q_k <= 0:
+        return qf
+    g = _NO_G
+    up = 1  # a jump that raises the charge: at most 2 paper steps (secant)
+    before = c.before
+    if before.clean:
+        dq = q_k - before.q_pc
+        adq = dq if dq >= 0 else -dq
+        if adq >= 64 and adq >= (q_k >> 5):  # enough excitation for a secant
+            dr = rp_ohm - before.rp_ohm
+            x = muldiv(c._mq_num_pc, dr if dr >= 0 else -dr, c._mq_den_ohm, 0, _MQ_CAP)  # mQ |dRp| (pC)
+            if x < adq << 1:  # else |G| >= 2: the linear model is not trustworthy
+                g = frac12(x, adq)  # |G| in Q.12
+                if (dr < 0) != (dq < 0):
+                    g = -g
+                if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
+                    g = _NO_G
+    if g == _NO_G:  # the prior: |G| >= elasticity * mQ Rp / Q
+        ceiling = c.status == _ST_T_MAX  # the pulse just measured was held at t_max
+        if c.status != _ST_OK and not ceiling:  # another bound: no model of that path
+            return qf
+        x = muldiv(c._mq_num_pc, rp_ohm, c._mq_den_ohm, 0, _MQ_CAP)  # mQ Rp (pC)
+        if x >= q_k << 1:
+            return qf
+        g = (frac12(x, q_k) * FAST_ELASTICITY_Q12) >> 12
+        if ceiling:  # T fixed, only I moves: Rp falls as the charge rises, G < 0
+            g = -g
+        elif g > 3891:
+            return qf
+        up = 2  # the prior's step does not pass the fixed point: at most 4 paper steps
+    lq = qf >> 4  # L(Rp_k) in pC
+    gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
+    n = lq - gq
+    if n <= 0:
+        return qf
+    den = 4096 - g  # (1 - G) in Q.12, in [205, 10240]
+    h = n // den
+    if h > c.q_max_pc >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
+        q_new = c._q_max_q4 + 1  # _from_q clamps and flags it
+    else:
+        q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < q_max + 2**12
+        if q_new > c.q_max_pc:
+            q_new = c._q_max_q4 + 1
+        else:
+            q_new = q_new << 4
+    base = q_k << 4
+    step = qf - base  # the paper's step, 1/16 pC
+    jump = q_new - base
+    if step == 0 or (jump > 0) != (step > 0):
+        return qf  # not the paper's direction: keep the paper's step
+    if step > 0:  # more charge: at most 2 (secant) or 4 (prior) paper steps: overshoot is felt
+        if step < 0x4000000 and jump > step << up:
+            q_new = base + (step << up)
+    elif -step < 0x8000000 and -jump > -(step << 2):  # less charge: at most 4 paper steps
+        q_new = base + (step << 2)
+    if q_new <= 0:
+        return qf
+    return q_new
+
+
+def drift(c, q_k, rp_ohm):
+    """The Rp the law is applied to under a falling drift (sweat, gel soaking in), else
+    rp_ohm. Rp's change since the last pulse less what our own step explains (with the
+    least elasticity) is the skin moving; when it has fallen two pulses running, the law
+    is applied to Rp one pulse ahead (the smaller of the two falls, at most Rp/16). Only
+    falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm."""
+    d_now = 0
+    before = c.before
+    if before.clean and q_k > 0:
+        dq = q_k - before.q_pc
+        adq = dq if dq >= 0 else -dq
+        if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
+            f = frac12(adq, q_k)  # |dQ|/Q in Q.12, < 128
+            e = least_elastic((rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12))  # e Rp |dQ| / Q
+            d_now = rp_ohm - before.rp_ohm - (e if dq >= 0 else -e)
+    d_prev = c.drift_ohm
+    c.drift_ohm = d_now
+    if d_now >= 0 or d_prev >= 0:
+        return rp_ohm
+    d = d_now if d_now > d_prev else d_prev  # the smaller fall
+    if -d < rp_ohm >> 9:  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
+        return rp_ohm
+    if -d > rp_ohm >> 4:
+        d = -(rp_ohm >> 4)
+    rp2 = rp_ohm + d
+    if rp2 < _RP_MIN_OHM:
+        return rp_ohm
+    return rp2

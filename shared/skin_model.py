@@ -1,0 +1,318 @@
+"""skin_model: MODE_FAST's electrode model, solved in integers (docs/controller.md,
+"MODE_FAST with a skin model").
+
+  Rp(I, T) = Rs + R(I) (1 - exp(-T / (R(I) Cp))),  R(I) = S (I / 1 mA)**-beta
+
+is the electrode of docs/simulation.md. Rs, beta and Cp are fitted on the host
+(host/skin.py) and set with Controller.set_skin; S is re-anchored to every
+measurement. Logarithms are log2 in Q.16 ("l" names: li = log2 I, lt = log2 T,
+ls = log2 S, lc = log2 Cp, lq = log2 Q). Every intermediate is below 2**30 and
+nothing is allocated after construction.
+"""
+
+try:
+    from micropython import const
+except ImportError:  # CPython
+
+    def const(x):
+        return x
+
+
+from fixmath import exp2q, log2q, mul_q16, muldiv
+
+# the accepted ranges (Controller.set_skin)
+SKIN_RS_MAX_OHM = const(5000)
+SKIN_BETA_MIN_Q16 = const(6554)  # 0.1
+SKIN_BETA_MAX_Q16 = const(98303)  # < 1.5
+SKIN_CP_MIN_PF = const(100)
+SKIN_CP_MAX_PF = const(2000000)  # 2 uF
+# a jump on the skin model raises the charge by at most 2**this paper steps
+FAST_MODEL_RAISE_LOG2 = const(4)
+
+# sensation_core's RP_MAX_OHM and counter ceiling: a const() is folded only inside its own
+# module, and importing the core's would be a dictionary lookup per use on the chip (and a
+# circular import); tests/test_core_split.py checks that the values agree.
+_RP_MAX_OHM = const(200000)
+_SAT30 = const(0x3FFFFFFF)
+_MQ_CAP = const(0x1FFFFFFF)
+
+_L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
+_L_E = const(94548)  # log2(e)
+_L_1MA = const(653118)  # log2(1000 uA): the model's reference current
+_L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
+_L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
+_L_LN2 = const(-34653)  # log2(ln 2)
+NOROOT = const(-0x3FFFFFFF)  # "no sign change": what SkinModel.root and g return then
+
+# what SkinModel.g(kind, x, lc, p, o) measures, x being the unknown
+_K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
+_K_PEEL = const(1)  # x = log2 contact change since pulse o: the model reads pulse p's Rp
+_K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
+_K_CEIL = const(3)  # x = log2 I at T = t_max: the line L(Rp) - I t_max
+_K_TWO = const(4)  # x = log2 R(I) at pulse p, Cp from p's Rp: the model reads pulse o's Rp
+
+
+class LogPulse:
+    """A measured pulse as the model reads it."""
+
+    def __init__(self):
+        self.li = 0  # log2 I (uA), Q.16
+        self.lt = 0  # log2 T (us), Q.16
+        self.rp_ohm = 0  # the Rp measured on it
+        self.ls = 0  # log2 S (ohm at 1 mA) with which the model reads it (set for the pulse before)
+
+
+class SkinModel:
+    """The model's fitted parameters, the two pulses it reads and its last answer.
+    Built once by the Controller (`c`: its limits, mE and Eq. 3 are read from it)."""
+
+    def __init__(self, c):
+        self.c = c
+        self.on = 0  # 1: a model is set
+        self.rs_ohm = 0  # fitted: series resistance Rs
+        self.beta_q16 = 0  # fitted: current exponent beta, Q.16
+        self.lc_set = 0  # fitted: log2 Cp (pF) as set
+        self.lc = 0  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
+        self.ls = 0  # log2 S, anchored on the last jump
+        self.lc_two = 0  # log2 Cp found by the last _K_TWO evaluation
+        self.lme = 0  # log2 mE (uA^2 us), from the calibration
+        self.ltmax = 0  # log2 t_max (us), from the limits
+        self.now = LogPulse()  # the pulse just measured
+        self.before = LogPulse()  # the pulse measured before it
+        self.jumped = 0  # 1: the pulse just measured was a model jump
+        self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
+
+    def set(self, rs_ohm, beta_q16, cp_pf):
+        """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
+        if rs_ohm == 0 and beta_q16 == 0 and cp_pf == 0:
+            self.on = 0
+        else:
+            self.on = 1
+            self.lc_set = log2q(cp_pf)
+            self.lc = self.lc_set
+        self.rs_ohm = rs_ohm
+        self.beta_q16 = beta_q16
+        self.jumped = 0
+
+    def rp(self, ls, lc, li, lt):
+        """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
+        pulse with log2 I = li, log2 T = lt."""
+        lr = ls - mul_q16(li - _L_1MA, self.beta_q16)  # log2 R(I)
+        lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+        if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+            lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
+            if lrz > _L_R_MAX:
+                return 0x200000
+            z = exp2q(lz + 0xE0000) if lz > -0x1E0000 else 0  # Q.14, < 2**13
+            v = 16384 - z // 5
+            v = 16384 - ((z * v) >> 14) // 4
+            v = 16384 - ((z * v) >> 14) // 3
+            v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
+            rz = exp2q(lrz)  # < 2**20
+            return self.rs_ohm + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
+        if lr > _L_R_MAX:
+            return 0x200000
+        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+            u = 0x8000
+        else:
+            zq = exp2q(lz + 0x100000)  # z in Q.16, < 12 * 2**16
+            lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
+            u = 0x8000 - exp2q(lw + 0xF0000)  # 1 - e^-z in Q.15
+        r = exp2q(lr)
+        return self.rs_ohm + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+
+    def g(self, kind, x, lc, p, o):
+        """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
+        if kind == _K_ANCHOR:
+            return self.rp(x, lc, p.li, p.lt) - p.rp_ohm
+        if kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+            ls = o.ls + mul_q16(x, self.beta_q16 - 0x10000)
+            return self.rp(ls, self.lc + x, p.li, p.lt) - p.rp_ohm
+        if kind == _K_LAW:  # 1/16 pC
+            r = self.rp(self.ls, self.lc, self.lme - x, (x << 1) - self.lme)
+            if r > _RP_MAX_OHM:
+                r = _RP_MAX_OHM
+            return self.c._line(r) - exp2q(x + 0x40000)
+        if kind == _K_CEIL:  # 1/16 pC
+            r = self.rp(self.ls, self.lc, x, self.ltmax)
+            if r > _RP_MAX_OHM:
+                r = _RP_MAX_OHM
+            return self.c._line(r) - exp2q(x + self.ltmax + 0x40000)
+        # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
+        r = exp2q(x)
+        y = x - log2q(r - p.rp_ohm + self.rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
+        if y <= 0:
+            return NOROOT
+        lc = p.lt - x + _L_1E6 - (log2q(y) - 0x100000 + _L_LN2)
+        ls = x + mul_q16(p.li - _L_1MA, self.beta_q16)
+        self.lc_two = lc
+        return self.rp(ls, lc, o.li, o.lt) - o.rp_ohm
+
+    def root(self, kind, a, b, lc, p, o):
+        """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
+        to 1/2**16; NOROOT if the ends have one sign or g fails."""
+        fa = self.g(kind, a, lc, p, o)
+        fb = self.g(kind, b, lc, p, o)
+        if fa == NOROOT or fb == NOROOT or (fa > 0) == (fb > 0):
+            return NOROOT if fa != 0 and fb != 0 else (a if fa == 0 else b)
+        side = 0
+        n = 0
+        while b - a > 1 and n < 40:
+            n += 1
+            w = b - a
+            num = fa if fa > 0 else -fa
+            den = num + (fb if fb > 0 else -fb)
+            while den >= 0x40000:
+                den >>= 1
+                num >>= 1
+            if den >= 256 and w <= 0x40000:
+                x = a + muldiv(num, w, den, 0, _MQ_CAP)
+            else:
+                x = a + (w >> 1)
+            if x <= a:
+                x = a + 1
+            elif x >= b:
+                x = b - 1
+            fx = self.g(kind, x, lc, p, o)
+            if fx == NOROOT:
+                return NOROOT
+            if fx == 0:
+                return x
+            if (fx > 0) == (fa > 0):  # Illinois: halve the end kept twice running
+                a = x
+                fa = fx
+                if side < 0:
+                    fb = fb >> 1 if fb > 1 or fb < -1 else fb
+                side = -1
+            else:
+                b = x
+                fb = fx
+                if side > 0:
+                    fa = fa >> 1 if fa > 1 or fa < -1 else fa
+                side = 1
+        if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+            return a
+        return b
+
+    def anchor(self, p, lc):
+        """log2 S with which the model (log2 Cp = lc) reads pulse p, or NOROOT.
+        R(I) >= Rp - Rs, so S is searched from there up to 16 times more."""
+        d = p.rp_ohm - self.rs_ohm
+        if d < 16:
+            return NOROOT
+        lo = log2q(d) + mul_q16(p.li - _L_1MA, self.beta_q16)
+        return self.root(_K_ANCHOR, lo, lo + 0x40000, lc, p, p)
+
+    def law_q(self, lq_k):
+        """The law's charge (1/16 pC) on the model skin: on the mE curve up to t_max
+        (searched from Q_k/4 to 4 Q_k), else on the line at t_max; NOROOT if none."""
+        c = self.c
+        lq_max = log2q(c.q_max_pc)
+        hi = lq_k + 0x20000
+        if hi > lq_max:
+            hi = lq_max
+        lq_t = (self.lme + self.ltmax) >> 1  # the mE curve's charge at t_max
+        if hi >= lq_t:
+            hi = lq_t
+            if self.g(_K_LAW, hi, 0, None, None) > 0:  # more than the curve gives at t_max
+                lo = log2q(c.i_min_ua)
+                hi = lq_max - self.ltmax
+                x = log2q(c.i_max_ua)
+                if x < hi:
+                    hi = x
+                li = self.root(_K_CEIL, lo, hi, 0, None, None) if hi > lo else NOROOT
+                if li == NOROOT:
+                    return NOROOT
+                return exp2q(li + self.ltmax + 0x40000)
+        lq = self.root(_K_LAW, lq_k - 0x20000, hi, 0, None, None)
+        if lq == NOROOT:
+            return NOROOT
+        return exp2q(lq + 0x40000)
+
+    def refit_cp(self):
+        """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
+        and the one before (the less charged of the two gives Cp, the other S), taken
+        when within 1/8 ... 2 x the Cp set."""
+        now = self.now
+        before = self.before
+        b = self.beta_q16
+        z0 = before.lt + mul_q16(before.li - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
+        z1 = now.lt + mul_q16(now.li - _L_1MA, b)
+        if z0 > z1:  # (two names, not a tuple: a tuple would be allocated in MicroPython)
+            p = now
+            o = before
+        else:
+            p = before
+            o = now
+        d = p.rp_ohm - self.rs_ohm
+        if d >= 16:
+            lo = log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
+            lr = self.root(_K_TWO, lo, lo + 0x40000, 0, p, o)
+            if lr != NOROOT:
+                self.g(_K_TWO, lr, 0, p, o)  # (sets lc_two for the root itself)
+                lc = self.lc_two
+                if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
+                    self.lc = lc
+
+    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev):
+        """MODE_FAST's jump with the skin model: the law solved on the model anchored
+        to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
+        prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
+        that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
+        the contact hypothesis is also solved and the smaller charge taken. Returns the
+        status, or -1 when the model has no answer (the caller goes on without it)."""
+        now = self.now
+        before = self.before
+        now.li = log2q(i_k)
+        now.lt = log2q(t_k)
+        now.rp_ohm = rp_ohm
+        p0rp = prev.rp_ohm
+        if p0rp > 0:
+            before.li = log2q(prev.i_ua)
+            before.lt = log2q(prev.t_us)
+            before.rp_ohm = p0rp
+        if jumped and p0rp > 0:
+            miss = rp_ohm - self.predicted_rp_ohm
+            dl = now.li - before.li
+            if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
+                self.refit_cp()
+        ls = self.anchor(now, self.lc)
+        if ls == NOROOT:
+            return -1
+        self.ls = ls
+        lq_k = log2q(q_k)
+        q16 = self.law_q(lq_k)
+        if q16 == NOROOT:
+            return -1
+        if q16 > q_k << 4 and not jumped and p0rp > 0:
+            # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
+            # charge is the smaller one; take it, the next pulse tells them apart
+            ls0 = self.anchor(before, self.lc)
+            if ls0 != NOROOT:
+                before.ls = ls0
+                la = self.root(_K_PEEL, -0x30000, 0x10000, 0, now, before)
+                if la != NOROOT:
+                    ls1 = self.ls
+                    lc1 = self.lc
+                    self.ls = ls0 + mul_q16(la, self.beta_q16 - 0x10000)
+                    self.lc = lc1 + la
+                    q2 = self.law_q(lq_k)
+                    if q2 != NOROOT and q2 < q16:
+                        q16 = q2
+                    else:
+                        self.ls = ls1
+                        self.lc = lc1
+        # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
+        base = q_k << 4
+        step = qf - base
+        if step == 0 or (q16 > base) != (step > 0):
+            return -1
+        if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
+            q16 = base + (step << FAST_MODEL_RAISE_LOG2)
+        c = self.c
+        st = c._from_q(q16)
+        self.predicted_rp_ohm = self.rp(self.ls, self.lc, log2q(c.i_ua), log2q(c.t_us))
+        self.jumped = 1
+        if c.model_jumps < _SAT30:
+            c.model_jumps += 1
+        return st
