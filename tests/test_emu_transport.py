@@ -1,7 +1,10 @@
 """emu://: the host's commands against the real rp2 firmware on the emulated Pico
 (host/emu, ../shared/emulator), the simulated electrode on its ADC."""
 
+import os
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -10,10 +13,18 @@ from steadytouch.emu import EMULATOR, NO_EMULATOR
 from steadytouch.record import read_recording
 from steadytouch.simrun import firmware_module
 
-pytestmark = pytest.mark.skipif(not (EMULATOR / "firmware.uf2").exists(), reason=NO_EMULATOR)
+needs_emulator = pytest.mark.skipif(not (EMULATOR / "firmware.uf2").exists(), reason=NO_EMULATOR)
+
+
+def test_no_emulator_is_one_line_naming_how_to_get_it(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "steadytouch.cli", "info", "--device", "emu://steady"],
+                       env=dict(os.environ, CHIP_EMULATOR=str(tmp_path)), capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "build-firmware.sh" in p.stderr
 AUTO = "auto=1000,1000,-1670,186000"
 
 
+@needs_emulator
 def test_info_prints_the_firmware_version_and_limits(capsys):
     assert main(["info", "--device", "emu://steady"]) == 0
     out = capsys.readouterr().out
@@ -21,6 +32,7 @@ def test_info_prints_the_firmware_version_and_limits(capsys):
     assert "hard limits: I <= 10000 uA" in out and "ch0: not calibrated" in out
 
 
+@needs_emulator
 def test_monitor_shows_rp_close_to_the_model(capsys):
     assert main(["monitor", "--device", f"emu://steady?{AUTO}", "--arm", "--seconds", "3"]) == 0
     out = capsys.readouterr().out
@@ -33,6 +45,7 @@ def test_monitor_shows_rp_close_to_the_model(capsys):
     assert "disarmed" in out
 
 
+@needs_emulator
 def test_calibrate_then_record_arm_is_accepted_by_audit(tmp_path, capsys):
     assert main(["calibrate", "--device", "emu://steady", "--i0-ua", "1000", "--t0-us", "1000",
                  "--x-star-ohm", "-1670", "--y-star-pc", "186000"]) == 0
@@ -46,6 +59,7 @@ def test_calibrate_then_record_arm_is_accepted_by_audit(tmp_path, capsys):
     assert "bit-exact" in capsys.readouterr().out
 
 
+@needs_emulator
 def test_no_node_is_one_clear_error(monkeypatch, capsys):
     monkeypatch.setenv("PATH", "/nonexistent")
     assert main(["info", "--device", "emu://steady"]) == 2
