@@ -64,3 +64,14 @@ def test_no_node_is_one_clear_error(monkeypatch, capsys):
     monkeypatch.setenv("PATH", "/nonexistent")
     assert main(["info", "--device", "emu://steady"]) == 2
     assert "Node" in capsys.readouterr().err
+
+
+@needs_emulator
+def test_the_emulator_dying_is_disconnected_with_its_reason():
+    from steadytouch.transport import Disconnected, open_transport
+
+    with open_transport("emu://steady") as t:
+        t.host.p.kill()
+        with pytest.raises(Disconnected, match="the emulated Pico stopped"):
+            while True:
+                t.read(1.0)
