@@ -6,6 +6,9 @@ pyserial's `loop://` handlers).
 - `sim://SCENARIO[?channels=N&seed=S&realtime=0|1&auto=I0,T0,X,Y&mode=akhtar|open]`
   — the real firmware in the MicroPython VM with the simulated board, speaking
   the same report stream on its stdio.
+- `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y]` — the real MicroPython rp2
+  firmware on the emulated Pico (rp2040js, ../shared/emulator): its main loop
+  (main_rp2) over its USB HID interface, the simulated electrode on its ADC.
 
 Every transport moves whole 64-byte reports: `read(timeout_s)` returns one IN
 report or None on timeout, `write(report)` sends one OUT report. Decoding, gap
@@ -18,6 +21,7 @@ import queue
 import subprocess
 import sys
 import threading
+from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 import hid_protocol as hp
@@ -192,6 +196,115 @@ class SimTransport(Transport):
                 self.p.kill()
 
 
+class EmuTransport(Transport):
+    """The real rp2 firmware on the emulated Pico (host/emu): the Node host boots it from
+    a flash image holding the project's device files in /lib, runs `import main` (the
+    board's main_rp2 loop, as at power-up) and streams HID reports, one hex line each
+    way, while the electrodes of a sim_electrode scenario feed the ADC (the simulator's
+    model ported to JS, host/emu/host.mjs). Emulated time never runs ahead of wall
+    time, so the device's keep-alive (emulated clock) is safe against the host's (wall
+    clock). Each open boots a fresh chip: nothing the board was told carries over to
+    the next command (`auto=` calibrates and sets the paper's mode at open)."""
+
+    BOOT_S = 120  # first use: npm ci, compile, flash image; then a few seconds
+
+    def __init__(self, scenario: str = "steady", channels: int = 2, seed: int = 1,
+                 auto: tuple[int, int, int, int] | None = None):
+        import shutil
+        import tempfile
+
+        from . import emu
+        from .simrun import firmware_module
+
+        self.url = f"emu://{scenario}?channels={channels}&seed={seed}"
+        self.host = None
+        self._pushed = None
+        mpy_dir = Path(tempfile.mkdtemp(prefix="steadytouch-emu-"))
+        try:
+            if not shutil.which("node"):
+                raise TransportError("emu:// needs Node >= 20 (`node` on the PATH) to run the emulated Pico")
+            emu.check_emulator()
+            host = emu.start_host(emu.mpy_cross(), mpy_dir=mpy_dir, die_with_parent=True)
+        except emu.NoEmulator:
+            raise TransportError(f"emu:// needs the emulated Pico in {emu.EMULATOR} (../shared/emulator beside the "
+                                 "checkout: MicroPython's firmware.uf2, the boot ROM and rp2run.mjs; rebuild it with "
+                                 "its build-firmware.sh, see docs/hardware.md; CHIP_EMULATOR=DIR points elsewhere)") \
+                from None
+        except emu.ChipUnavailable as e:
+            raise TransportError(f"emu://: {e}") from None
+        finally:
+            shutil.rmtree(mpy_dir, ignore_errors=True)
+        self.host = host
+        try:
+            sim_electrode = firmware_module("sim_electrode")
+            scen = sim_electrode.scenario(scenario)
+            e = sim_electrode.Electrode()
+            chip = host.boot(host.image)
+            chip.wiring(emu.load_cfg(), channels)
+            code = f"import board_config\nboard_config.N_CHANNELS = {channels}\nimport main\n"
+            host.call("stream", code=code, scenario={
+                "keys": [list(k) for k in scen.keys], "interp_h": scen.interp_h, "seed": seed, "noise_counts": 1.5,
+                "electrode": {k: getattr(e, k) for k in ("area0", "rs", "rho_ref", "j_ref", "beta", "c", "alpha")}})
+        except emu.ChipError as err:
+            self.close()
+            raise TransportError(f"emu://: the emulated Pico did not start: {str(err).splitlines()[0]}") from None
+        except BaseException:
+            self.close()
+            raise
+        if auto:
+            self._auto(auto)
+
+    def _auto(self, auto) -> None:
+        """The paper's mode and a calibration, sent over HID like any host command."""
+        import sensation_core as sc
+
+        from .device import Device, DeviceError
+
+        d = Device(self)
+        try:
+            d.command(d.cmds.set_mode(sc.MODE_AKHTAR), timeout_s=self.BOOT_S)  # the first answer: the loop is up
+            d.calibrate(*auto, hp.CH_ALL)
+        except DeviceError as e:
+            self.close()
+            raise TransportError(f"emu://: auto={','.join(map(str, auto))} refused: {e}") from None
+
+    def _lost(self) -> Disconnected:
+        self.host.p.wait(timeout=5) if self.host.p.poll() is None else None
+        self.host.err_thread.join(timeout=2)
+        why = self.host.last_err.removeprefix("[emu] ")
+        return Disconnected(f"the emulated Pico stopped (exit code {self.host.p.returncode})"
+                            + (f": {why}" if why else ""))
+
+    def read(self, timeout_s: float) -> bytes | None:
+        import queue as _q
+
+        try:
+            line = self.host.lines.get(timeout=timeout_s)
+        except _q.Empty:
+            return None
+        if not line:
+            self.host.lines.put(b"")
+            raise self._lost()
+        try:
+            r = bytes.fromhex(line.decode().strip())
+        except ValueError:
+            raise Disconnected(f"the emulated Pico sent a line that is not a report: {line[:60]!r}") from None
+        if len(r) != hp.REPORT_LEN:
+            raise Disconnected(f"the emulated Pico sent a {len(r)}-byte report; expected {hp.REPORT_LEN}")
+        return r
+
+    def write(self, report: bytes) -> None:
+        try:
+            self.host.p.stdin.write(bytes(report).hex().encode() + b"\n")
+            self.host.p.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError):
+            raise self._lost() from None
+
+    def close(self) -> None:
+        if self.host is not None:
+            self.host.close()  # stdin EOF: the Node host exits, the emulated board with it
+
+
 def _flag(q, name, default):
     v = q.get(name, [default])[0]
     return v
@@ -229,5 +342,39 @@ def open_transport(url: str, hid_module=None) -> Transport:
         if mode not in ("akhtar", "fast", "open", "charge", "energy", "pwlinear"):
             raise TransportError(f"bad device URL {url!r}: mode is akhtar, fast, open, charge, energy or pwlinear")
         return SimTransport(scenario, channels, seed, realtime, _flag(q, "auto", None), mode, frames)
-    raise TransportError(f"unknown device {url!r}: use {DEFAULT_URL} (the board over USB) or sim://SCENARIO "
-                         "(the simulator, e.g. sim://peel)")
+    if u.scheme == "emu":
+        q = parse_qs(u.query)
+        scenario = (u.netloc + u.path).strip("/") or _flag(q, "scenario", "steady")
+        try:
+            channels = int(_flag(q, "channels", "2"))
+            seed = int(_flag(q, "seed", "1"))
+        except ValueError:
+            raise TransportError(f"bad device URL {url!r}: channels and seed take whole numbers") from None
+        if not 1 <= channels <= 4:
+            raise TransportError(f"bad device URL {url!r}: channels={channels} out of range [1, 4]")
+        if not 0 <= seed < 2**32:
+            raise TransportError(f"bad device URL {url!r}: seed={seed} out of range [0, 2**32)")
+        auto = _flag(q, "auto", None)
+        if auto is not None:
+            try:
+                auto = tuple(int(v) for v in auto.split(","))
+                if len(auto) != 4:
+                    raise ValueError
+            except ValueError:
+                raise TransportError(f"bad device URL {url!r}: auto takes I0_UA,T0_US,XSTAR_OHM,YSTAR_PC, "
+                                     "e.g. auto=1000,1000,-1670,186000") from None
+            from .protocol import check_calibration
+
+            try:
+                check_calibration(*auto)
+            except ValueError as e:
+                raise TransportError(f"bad device URL {url!r}: auto: {e}") from None
+        from .simrun import SimError, scenario_keys
+
+        try:
+            scenario_keys(scenario)
+        except SimError as e:
+            raise TransportError(f"bad device URL {url!r}: {e}") from None
+        return EmuTransport(scenario, channels, seed, auto)
+    raise TransportError(f"unknown device {url!r}: use {DEFAULT_URL} (the board over USB), sim://SCENARIO "
+                         "(the simulator, e.g. sim://peel) or emu://SCENARIO (the firmware on the emulated Pico)")

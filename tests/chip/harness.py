@@ -1,274 +1,30 @@
-"""The Python side of the chip tests: drives tests/chip/host.mjs (Node, rp2040js)
-over JSON lines. Emulated time only: every figure here is emulated and exact."""
+"""The chip tests' harness is the product's emulated Pico (host/emu: the Node host,
+its pinned rp2040js and the Python set-up), shared with the `emu://` transport so
+there is one host. This module keeps the names the chip tests and bench/chip.py use."""
 
-from __future__ import annotations
-
-import base64
-import hashlib
-import importlib.util
-import json
-import shutil
-import os
-import subprocess
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent.parent
-FIRMWARE = ROOT / "firmware"
-SHARED = ROOT / "shared"
-# ../shared/emulator beside the checkout, used in place (CHIP_EMULATOR=DIR points elsewhere)
-EMULATOR = Path(os.environ.get("CHIP_EMULATOR") or ROOT.parent / "shared" / "emulator")
-CACHE = ROOT / ".cache" / "chip"  # ignored: rp2040js, the .mpy files, the flash image
-RP2040JS = "1.4.1"
-# on the board, in /lib: what the rp2 build needs (main.py too: only /main.py starts at boot)
-HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py"}
-NO_EMULATOR = ("chip tests skipped: ../shared/emulator is absent (the Pico's MicroPython firmware.uf2, boot ROM and "
-               "rp2run.mjs beside the checkout; build it with its build-firmware.sh, see docs/hardware.md)")
+from steadytouch.emu import (  # noqa: F401
+    BOARD,
+    CACHE,
+    EMULATOR,
+    FIRMWARE,
+    HOST_ONLY,
+    NO_EMULATOR,
+    ROOT,
+    RP2040JS,
+    SHARED,
+    BoardReset,
+    Chip,
+    ChipError,
+    ChipUnavailable,
+    Host,
+    NoEmulator,
+    device_files,
+    install_rp2040js,
+    load_cfg,
+    make_board,
+    start_host,
+)
 
-
-class ChipUnavailable(RuntimeError):
-    """The emulated chip cannot be set up (Node, npm or mpy-cross missing or failing)."""
-
-
-class NoEmulator(ChipUnavailable):
-    """../shared/emulator is not there."""
-
-
-def load_cfg():
-    spec = importlib.util.spec_from_file_location("board_config_chip", FIRMWARE / "board_config.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _tool(name: str) -> str:
-    p = shutil.which(name)
-    if not p:
-        raise ChipUnavailable(f"the chip tests need {name} (Node >= 20 with npm); ../shared/emulator is present")
-    return p
-
-
-def install_rp2040js() -> None:
-    """npm ci of tests/chip/package.json + lock (rp2040js, pinned) into CACHE, unless already there."""
-    pkg = CACHE / "node_modules" / "rp2040js" / "package.json"
-    lock = (HERE / "package-lock.json").read_bytes()
-    if pkg.exists() and json.loads(pkg.read_text())["version"] == RP2040JS and (CACHE / "package-lock.json").exists() \
-            and (CACHE / "package-lock.json").read_bytes() == lock:
-        return
-    CACHE.mkdir(parents=True, exist_ok=True)
-    shutil.copy(HERE / "package.json", CACHE / "package.json")
-    (CACHE / "package-lock.json").write_bytes(lock)
-    p = subprocess.run([_tool("npm"), "ci", "--no-audit", "--no-fund", "--prefix", str(CACHE)], capture_output=True,
-                       text=True, timeout=600)
-    if p.returncode or not pkg.exists() or json.loads(pkg.read_text())["version"] != RP2040JS:
-        raise ChipUnavailable(f"npm could not install rp2040js {RP2040JS} into {CACHE}: {p.stderr.strip()[-400:]}")
-
-
-def _compile(mpy_cross: str, src: Path, out_dir: Path) -> Path:
-    out = out_dir / (src.stem + ".mpy")
-    p = subprocess.run([mpy_cross, "-march=armv6m", "-s", src.name, "-o", str(out), str(src)], capture_output=True,
-                       text=True)
-    if p.returncode:
-        raise ChipUnavailable(f"mpy-cross failed on {src}: {p.stderr.strip()}")
-    return out
-
-
-def device_files(mpy_cross: str, out: Path) -> list[tuple[Path, str]]:
-    """(local .mpy, path on the board) for the project's device files and board-lib, all in /lib."""
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    files = []
-    for src in sorted(SHARED.glob("*.py")) + sorted(FIRMWARE.glob("*.py")):
-        if src.name not in HOST_ONLY:
-            files.append((_compile(mpy_cross, src, out), "/lib/" + src.stem + ".mpy"))
-    lib = EMULATOR / "board-lib"
-    for src in sorted(lib.rglob("*.py")):
-        rel = src.relative_to(lib)
-        d = out / rel.parent
-        d.mkdir(parents=True, exist_ok=True)
-        files.append((_compile(mpy_cross, src, d), "/lib/" + str(rel.with_suffix(".mpy"))))
-    return files
-
-
-def start_host(mpy_cross: str) -> "Host":
-    """Check the emulator, install rp2040js, compile the device files, start the Node host
-    and make (or reuse) the flash image holding them; `host.boot(host.image)` boots a chip."""
-    if not (EMULATOR / "firmware.uf2").exists() or not (EMULATOR / "rp2run.mjs").exists():
-        raise NoEmulator(NO_EMULATOR)
-    node = _tool("node")
-    install_rp2040js()
-    files = device_files(mpy_cross, CACHE / "mpy")
-    h = hashlib.sha256((EMULATOR / "firmware.uf2").read_bytes())
-    for local, remote in files:
-        h.update(remote.encode() + local.read_bytes())
-    image = CACHE / f"fs-{h.hexdigest()[:16]}.img"
-    host = Host(node, EMULATOR, CACHE, CACHE / "host.log")
-    try:
-        if not image.exists():
-            chip = host.boot()
-            chip.exec("import os\nfor d in ('/lib', '/lib/usb', '/lib/usb/device'):\n"
-                      "    try:\n        os.mkdir(d)\n    except OSError:\n        pass")
-            for local, remote in files:
-                chip.put(local.read_bytes(), remote)
-            chip.save_fs(image)
-            # keep a few: another run (a benchmark, a second checkout state) may still boot from its own
-            for old in sorted(CACHE.glob("fs-*.img"), key=lambda p: p.stat().st_mtime)[:-4]:
-                old.unlink()
-    except BaseException:
-        host.close()
-        raise
-    host.image = image
-    return host
-
-
-class ChipError(AssertionError):
-    """A Python exception on the board, or the host could not do what was asked."""
-
-
-class BoardReset(Exception):
-    def __init__(self, reason, reset_ns, reply):
-        super().__init__(f"the board reset ({reason}) at {reset_ns / 1e9:.6f} s emulated")
-        self.reason = reason
-        self.reset_ns = reset_ns
-        self.reply = reply
-
-
-class Host:
-    """One Node process; `boot()` starts a fresh emulated chip in it (flash from an image)."""
-
-    WALL_S = 900  # a host call that takes longer is a hang: the emulator is stopped
-
-    def __init__(self, node: str, emulator: Path, cache: Path, log: Path):
-        import queue
-        import threading
-
-        self.log = open(log, "ab")
-        self.p = subprocess.Popen([node, str(HERE / "host.mjs"), str(emulator), str(cache)], stdin=subprocess.PIPE,
-                                  stdout=subprocess.PIPE, stderr=self.log, cwd=str(HERE))
-        self.lines = queue.Queue()
-
-        def reader():
-            for line in self.p.stdout:
-                self.lines.put(line)
-            self.lines.put(b"")
-
-        threading.Thread(target=reader, daemon=True).start()
-
-    def call(self, op: str, **kw) -> dict:
-        import queue
-
-        self.p.stdin.write((json.dumps({"op": op, **kw}) + "\n").encode())
-        self.p.stdin.flush()
-        try:
-            line = self.lines.get(timeout=self.WALL_S)
-        except queue.Empty:
-            self.p.kill()
-            raise ChipError(f"{op}: no answer from the chip host in {self.WALL_S} s of wall time; stopped it")
-        if not line:
-            raise ChipError(f"the chip host exited (code {self.p.poll()}); its stderr is in {self.log.name}")
-        r = json.loads(line)
-        if r.get("ok"):
-            return r
-        if "reset" in r:
-            raise BoardReset(r["reset"], r["reset_ns"], r)
-        raise ChipError(f"{op}: {r.get('error')}\nboard said: {r.get('rx', '')[-600:]}")
-
-    def boot(self, fs_image: Path | None = None) -> "Chip":
-        r = self.call("boot", fs_image=str(fs_image) if fs_image else None)
-        return Chip(self, r)
-
-    def close(self):
-        if self.p.poll() is None:
-            self.p.stdin.close()
-            try:
-                self.p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-        self.log.close()
-
-
-class Chip:
-    def __init__(self, host: Host, boot_reply: dict):
-        self.host = host
-        self.banner = boot_reply["banner"]
-
-    def exec(self, code: str, timeout_ms: int = 20000) -> str:
-        """Run code in the raw REPL; its stdout, or ChipError with the board's traceback."""
-        r = self.host.call("exec", code=code, timeout_ms=timeout_ms)
-        if r["err"]:
-            raise ChipError(r["err"])
-        self.last = r
-        return r["out"]
-
-    def eval(self, expr: str):
-        """A Python literal printed by the board (repr), parsed on the host."""
-        import ast
-
-        return ast.literal_eval(self.exec(f"print(repr({expr}))").strip())
-
-    def eval_out(self, code: str):
-        """Run code whose last output line is a Python literal; return it parsed."""
-        import ast
-
-        return ast.literal_eval(self.exec(code).strip().splitlines()[-1])
-
-    def put(self, data: bytes, remote: str):
-        self.host.call("put", path=remote, data=base64.b64encode(data).decode())
-
-    def save_fs(self, file: Path):
-        self.host.call("save_fs", file=str(file))
-
-    def wiring(self, cfg, n: int):
-        self.host.call("wiring", wiring={
-            "gate_pins": list(cfg.GATE_PINS[:n]), "pwm_pins": list(cfg.AMP_PWM_PINS[:n]),
-            "adc_inputs": list(cfg.ADC_INPUTS[:n]), "amp_full_ua": cfg.AMP_UA_AT_FULL,
-            "uv_per_count": cfg.VMON_UV_PER_COUNT, "compliance_mv": cfg.COMPLIANCE_MV})
-
-    def load(self, ch: int, rs_ohm=0, rp_ohm=0, tau_us=0, open_=False):
-        self.host.call("load", ch=ch, load={"rs_ohm": rs_ohm, "rp_ohm": rp_ohm, "tau_us": tau_us, "open": open_})
-
-    def take(self) -> dict:
-        """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns) so far."""
-        return self.host.call("take")
-
-    def hid(self, send=(), report_descriptor: int = 0, device_descriptor: bool = False) -> dict:
-        """The emulated USB host's view of the board's HID interface: IN reports
-        [ns, hex] since the last call, endpoints, enumerations; `send` queues OUT reports."""
-        return self.host.call("hid", send=[bytes(r).hex() for r in send], report_descriptor=report_descriptor,
-                              device_descriptor=device_descriptor)
-
-    def run(self, ms: float) -> int:
-        return self.host.call("run", ms=ms)["nanos"]
-
-
-# The real board layer on the chip. USB is left out here (tests/chip/test_chip_hid.py
-# runs it); a soft timer feeds the watchdog while the REPL waits between commands.
-BOARD = """
-import machine, time, micropython, gc
-import board_config as cfg, hid_protocol as hp, board_rp2, stim
-if {n} != cfg.N_CHANNELS:  # a board_config with another channel count
-    class Cfg:
-        pass
-    for _k in dir(cfg):
-        if not _k.startswith('__'):
-            setattr(Cfg, _k, getattr(cfg, _k))
-    Cfg.N_CHANNELS = {n}
-    cfg = Cfg
-if {no_usb}:
-    board_rp2.Board._usb = lambda self: None
-b = board_rp2.Board(cfg)
-if b.usb is not None:  # re-enumerating: what the REPL writes before the host is back is lost
-    while not b.usb.is_open():
-        time.sleep_ms(5)
-    time.sleep_ms(20)
-_feeder = machine.Timer(period=100, callback=lambda t: b.feed_watchdog())
-"""
-
-
-def make_board(chip: Chip, cfg, usb: bool = False, n_channels: int | None = None) -> None:
-    n = n_channels or cfg.N_CHANNELS
-    chip.wiring(cfg, n)
-    chip.exec(BOARD.format(no_usb=not usb, n=n))
-    chip.take()  # forget the edges of the set-up
+HERE = Path(__file__).resolve().parent  # tests/chip (conftest: which tests are chip tests)

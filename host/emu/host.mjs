@@ -1,6 +1,6 @@
-// The chip tests' host: boots the real MicroPython firmware on the emulated
-// RP2040 (rp2040js, through ../shared/emulator/rp2run.mjs used in place), and
-// plays the world around the board:
+// The emulated Pico's host (the chip tests and the emu:// transport): boots the
+// real MicroPython firmware on the emulated RP2040 (rp2040js, through
+// ../shared/emulator/rp2run.mjs used in place), and plays the world around the board:
 //   - steps the PIO state machines on the emulated clock at their clock
 //     dividers (rp2040js 1.4.1 runs PIO on setTimeout, 1000 steps a macrotask,
 //     with no divider and no relation to emulated time), and records every
@@ -13,7 +13,11 @@
 //     (enumerated again when the board re-connects with it), whose 64-byte IN
 //     reports it collects.
 // Protocol: one JSON object a line on stdin, one JSON reply a line on stdout
-// (tests/chip/chip.py is the Python side). Usage:
+// (host/emu/__init__.py is the Python side). The op `stream` switches to the
+// streaming mode of the emu:// transport (see streamMode below): from then on every
+// stdin line is one HID OUT report in hex and every stdout line one IN report in
+// hex, the board runs paced by the wall clock, and stdin EOF ends the process.
+// Usage:
 //   node host.mjs EMULATOR_DIR CACHE_DIR
 import fs from 'node:fs';
 import path from 'node:path';
@@ -30,6 +34,81 @@ const { GPIOPinState } = await import('rp2040js');
 const { UsbHost } = await import('./usbhost.mjs');
 
 const WATCHDOG_LOAD = 0x40058004;
+
+// ------------------------------------------------------------------ the electrode of a scenario
+// A line-by-line port of firmware/sim_electrode.py's Electrode and Scenario (the
+// simulator's model; parameters and keyframes come from the Python side, so the
+// numbers have one source): Rs + (Rp_skin || Cp), Rp_skin from the current density
+// and hydration, contact and hydration following the scenario's keyframes.
+class Electrode {
+  constructor(p) {
+    this.area0 = p.area0;
+    this.rs = p.rs; // kohm
+    this.rho_ref = p.rho_ref;
+    this.j_ref = p.j_ref;
+    this.beta = p.beta;
+    this.c = p.c; // nF/cm^2
+    this.alpha = p.alpha;
+    this.contact = 1.0;
+    this.h = 1.0;
+    this.rho = 0.0;
+    this.rp_skin = 0.0; // kohm
+    this.tau = 0.0; // us
+  }
+
+  stepHydration(hTarget, tauS, dtS) {
+    if (tauS <= 0) this.h = hTarget;
+    else this.h += (hTarget - this.h) * (1.0 - Math.exp(-dtS / tauS));
+  }
+
+  /** Set rp_skin and tau for a pulse of iUa; false if the electrode is off. */
+  pulse(iUa) {
+    const a = this.area0 * this.contact;
+    if (a <= 1e-6 || iUa <= 0) return false;
+    const j = iUa / 1000.0 / a;
+    const rhoEq = this.h * this.rho_ref * (j / this.j_ref) ** -this.beta;
+    if (this.rho <= 0.0) this.rho = rhoEq;
+    else this.rho += this.alpha * (rhoEq - this.rho);
+    this.rp_skin = this.rho / a;
+    this.tau = this.rp_skin * this.c * a;
+    return true;
+  }
+}
+
+class Scenario {
+  constructor({ keys, interp_h }) {
+    this.keys = keys; // [t_s, contact, h_target, tau_s]
+    this.interpH = interp_h;
+    this.k = 0;
+  }
+
+  /** [contact, h_target, tau_s] at t_s (calls must not go back in time). */
+  at(tS) {
+    const keys = this.keys;
+    let k = this.k;
+    while (k + 1 < keys.length && keys[k + 1][0] <= tS) k++;
+    this.k = k;
+    const a = keys[k];
+    if (k + 1 < keys.length) {
+      const b = keys[k + 1];
+      const f = (tS - a[0]) / (b[0] - a[0]);
+      return [a[1] + (b[1] - a[1]) * f, this.interpH ? a[2] + (b[2] - a[2]) * f : a[2], a[3]];
+    }
+    return [a[1], a[2], a[3]];
+  }
+}
+
+/** mulberry32: a small seeded generator for the monitor's noise (reproducible runs). */
+function rng(seed) {
+  let a = seed >>> 0;
+  return () => {
+    a = (a + 0x6d2b79f5) >>> 0;
+    let t = a;
+    t = Math.imul(t ^ (t >>> 15), t | 1);
+    t ^= t + Math.imul(t ^ (t >>> 7), t | 61);
+    return ((t ^ (t >>> 14)) >>> 0) / 4294967296;
+  };
+}
 
 class Chip {
   constructor(fsImage) {
@@ -49,6 +128,7 @@ class Chip {
     this.wiring = null;
     this.loads = [];
     this.rise = new Map(); // gate pin -> [rise ns, i_ua]
+    this.world = null; // a scenario's electrodes (setScenario), else the fixed loads
     this.installPio();
     this.installWatchdogLog();
     this.usb = new UsbHost(b);
@@ -153,6 +233,7 @@ class Chip {
     this.edges.push([pin, high ? 1 : 0, t]);
     if (high) {
       this.rise.set(k, [t, this.amplitudeUa(k)]);
+      if (this.world) this.electrodePulse(k, t, this.rise.get(k)[1]);
       const l = this.loads[k];
       if (l && l.cycle) l.idx = ((l.idx ?? -1) + 1) % l.cycle.length; // a load that changes every pulse
     }
@@ -179,7 +260,46 @@ class Chip {
       uv = i * (load.rs_ohm + load.rp_ohm * charge);
       uv = Math.min(uv, w.compliance_mv * 1000);
     }
-    return Math.max(0, Math.min(4095, Math.round(uv / w.uv_per_count)));
+    let counts = uv / w.uv_per_count;
+    if (this.world && this.world.noise) {
+      const r = this.world.random;
+      counts += (r() + r() + r() - 1.5) * 2 * this.world.noise; // board_sim's noise, seeded
+    }
+    return Math.max(0, Math.min(4095, Math.round(counts)));
+  }
+
+  /** Electrodes that follow a scenario (emu://): spec = {keys, interp_h, electrode, noise_counts, seed}. */
+  setScenario(spec) {
+    const n = this.wiring.gate_pins.length;
+    this.world = {
+      scenario: new Scenario(spec),
+      electrodes: Array.from({ length: n }, () => new Electrode(spec.electrode)),
+      t0: this.clock.nanos, // scenario time 0: now
+      last: this.clock.nanos,
+      noise: spec.noise_counts,
+      random: rng(spec.seed),
+    };
+  }
+
+  /** The scenario at emulated time t (ns): contact and hydration of every electrode. */
+  advanceScenario(t) {
+    const w = this.world;
+    const dtS = (t - w.last) / 1e9;
+    if (dtS <= 0) return;
+    w.last = t;
+    const [contact, hT, tauS] = w.scenario.at((t - w.t0) / 1e9);
+    for (const e of w.electrodes) {
+      e.contact = contact;
+      e.stepHydration(hT, tauS, dtS);
+    }
+  }
+
+  /** A pulse starts on channel k: the electrode's Rp and tau for it become the channel's load. */
+  electrodePulse(k, t, iUa) {
+    this.advanceScenario(t);
+    const e = this.world.electrodes[k];
+    if (e.pulse(iUa)) this.loads[k] = { rs_ohm: e.rs * 1000, rp_ohm: e.rp_skin * 1000, tau_us: e.tau };
+    else this.loads[k] = { open: true }; // off (or no current): the stimulator runs into compliance
   }
 
   installWatchdogLog() {
@@ -247,22 +367,145 @@ function handle(msg) {
     }
     case 'hid':
       return chip.usb.take(msg);
+    case 'stream':
+      // the electrodes follow the scenario; `code` (e.g. `import main`) is started in
+      // the raw REPL and not waited for; then streamMode() takes over stdin and stdout
+      if (msg.scenario) chip.setScenario(msg.scenario);
+      b.write(Buffer.from(msg.code, 'utf8'));
+      b.write('\x04');
+      b.expect('OK', 5e9);
+      streaming = true;
+      return { nanos: chip.clock.nanos };
     default:
       throw new Error(`unknown op ${op}`);
   }
 }
 
+// -------------------------------------------------------------------- streaming (emu://)
+// The board runs continuously, paced by the wall clock in slices of at most SLICE_MS
+// of wall time, between which stdin is serviced (the way ../shared/emulator/rp2tcp.mjs
+// paces its board). Emulated time never runs ahead of wall time: a busy board falls
+// behind (~0.4x) and the lag is forgotten beyond MAX_LAG_NS, so an idle board (WFI,
+// skipped by the emulator) cannot fast-forward to catch up. That is what keeps the
+// device's keep-alive safe: it counts emulated time, the host's keep-alive is sent on
+// wall time, so the device sees the host at least as often as the host writes.
+const SLICE_MS = 20;
+const MAX_LAG_NS = 100e6;
+let streaming = false;
+let stopped = false;
+const say = (s) => process.stderr.write(`[emu] ${s}\n`);
+
+/** Run the board to emulated time untilNs or for budgetMs of wall time, whichever first. */
+function advance(b, untilNs, budgetMs) {
+  const { core, clock } = b;
+  const fifo = b.cdc.txFIFO;
+  const w0 = performance.now();
+  while (clock.nanos < untilNs && !b.resetReason && performance.now() - w0 < budgetMs) {
+    while (b.pending.length && !fifo.full) fifo.push(b.pending.shift());
+    if (b.heldRead && !fifo.empty) {
+      const { endpoint, size } = b.heldRead;
+      b.heldRead = null;
+      b.deliverRead(endpoint, size);
+    }
+    for (let i = 0; i < 4000 && clock.nanos < untilNs && !b.resetReason; i++) {
+      if (core.waiting) {
+        const n = clock.nanosToNextAlarm;
+        clock.tick(Math.min(n > 0 ? n : 1000, untilNs - clock.nanos)); // idle jumps stop at the target
+      } else {
+        clock.tick(core.executeInstruction() * CYCLE_NS);
+      }
+    }
+  }
+}
+
+function streamMode() {
+  const b = chip.b;
+  let target = b.nanos; // emulated ns the board may reach
+  let lastWall = performance.now();
+  let boardLine = ''; // what the board printed on its serial port, line by line to stderr
+  let lastBoardLine = '';
+  chip.usb.onReport = (hex) => process.stdout.write(hex + '\n');
+  for (const [, hex] of chip.usb.reports) process.stdout.write(hex + '\n');
+  chip.usb.reports = [];
+  const end = (code, why) => {
+    if (stopped) return;
+    stopped = true;
+    say(why);
+    process.exit(code);
+  };
+  const serial = () => {
+    if (!b.rx.length) return false;
+    const text = Buffer.from(b.rx).toString('latin1');
+    b.rx = [];
+    for (const ch of text) {
+      if (ch === '\x04') return true; // the raw REPL's end of output: the firmware's loop returned
+      if (ch === '\n') {
+        const line = boardLine.replace(/\r$/, '');
+        if (line.trim()) {
+          process.stderr.write(`[board] ${line}\n`);
+          lastBoardLine = line.trim();
+        }
+        boardLine = '';
+      } else boardLine += ch;
+    }
+    return false;
+  };
+  const step = () => {
+    if (stopped) return;
+    const now = performance.now();
+    target += (now - lastWall) * 1e6;
+    lastWall = now;
+    if (target - b.nanos > MAX_LAG_NS) target = b.nanos + MAX_LAG_NS;
+    try {
+      advance(b, target, SLICE_MS);
+    } catch (e) {
+      return end(3, `emulator error: ${e.stack || e}`);
+    }
+    chip.usb.pump();
+    if (b.resetReason) {
+      serial();
+      return end(3, `the board reset (${b.resetReason}) at ${(b.resetNanos / 1e9).toFixed(3)} s emulated` +
+        (lastBoardLine ? `; it printed: ${lastBoardLine}` : ''));
+    }
+    if (serial()) {
+      if (boardLine.trim()) lastBoardLine = boardLine.trim();
+      return end(4, `the firmware's loop ended at ${(b.nanos / 1e9).toFixed(3)} s emulated` +
+        (lastBoardLine ? `: ${lastBoardLine}` : ''));
+    }
+    if (b.nanos < target) setImmediate(step);
+    else setTimeout(step, 1);
+  };
+  say(`streaming: the firmware's loop runs, paced by the wall clock (${(b.nanos / 1e9).toFixed(3)} s emulated)`);
+  step();
+}
+
+function onReportLine(line) {
+  const hex = line.trim();
+  if (!hex) return;
+  if (!/^[0-9a-fA-F]{128}$/.test(hex)) {
+    say(`not a 64-byte report in hex, ignored: ${hex.slice(0, 40)}`);
+    return;
+  }
+  chip.usb.outQueue.push(Uint8Array.from(Buffer.from(hex, 'hex')));
+  chip.usb.pump();
+}
+
 const rl = readline.createInterface({ input: process.stdin, terminal: false });
 rl.on('line', (line) => {
+  if (streaming) return onReportLine(line);
   if (!line.trim()) return;
   let msg;
   try {
     msg = JSON.parse(line);
     out({ ok: true, ...handle(msg) });
+    if (streaming) streamMode();
   } catch (e) {
     if (e instanceof BoardReset) out({ ok: false, reset: e.reason, reset_ns: e.nanos, nanos: chip.clock.nanos,
       feeds: chip.feeds, rx: chip.b.rxText().slice(-2000) });
     else out({ ok: false, error: String(e.stack || e), rx: chip ? chip.b.rxText().slice(-2000) : '' });
   }
 });
-rl.on('close', () => process.exit(0));
+rl.on('close', () => {
+  stopped = true;
+  process.exit(0); // the host is gone (stdin EOF): stop the board with it
+});

@@ -50,11 +50,14 @@ export class UsbHost {
     this.heldOut = null;
     this.ep0 = null; // pending control-IN request: collects EP0 data
     this.sent = 0;
+    this.onReport = null; // streaming: called with each IN report (hex) instead of collecting it
 
     const cdcWrite = usb.onEndpointWrite;
     usb.onEndpointWrite = (ep, buf) => {
       if (this.hid && ep === this.hid.in && ep !== 0) {
-        this.reports.push([clock.nanos, Buffer.from(buf).toString('hex')]);
+        const hex = Buffer.from(buf).toString('hex');
+        if (this.onReport) this.onReport(hex);
+        else this.reports.push([clock.nanos, hex]);
         return;
       }
       if (ep === 0 && this.ep0) {

@@ -1,0 +1,77 @@
+"""emu://: the host's commands against the real rp2 firmware on the emulated Pico
+(host/emu, ../shared/emulator), the simulated electrode on its ADC."""
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from steadytouch.cli import main
+from steadytouch.emu import EMULATOR, NO_EMULATOR
+from steadytouch.record import read_recording
+from steadytouch.simrun import firmware_module
+
+needs_emulator = pytest.mark.skipif(not (EMULATOR / "firmware.uf2").exists(), reason=NO_EMULATOR)
+
+
+def test_no_emulator_is_one_line_naming_how_to_get_it(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "steadytouch.cli", "info", "--device", "emu://steady"],
+                       env=dict(os.environ, CHIP_EMULATOR=str(tmp_path)), capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "build-firmware.sh" in p.stderr
+AUTO = "auto=1000,1000,-1670,186000"
+
+
+@needs_emulator
+def test_info_prints_the_firmware_version_and_limits(capsys):
+    assert main(["info", "--device", "emu://steady"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"steadytouch firmware \d+\.\d+\.\d+ on pico-stmisola, 2 channel", out)
+    assert "hard limits: I <= 10000 uA" in out and "ch0: not calibrated" in out
+
+
+@needs_emulator
+def test_monitor_shows_rp_close_to_the_model(capsys):
+    assert main(["monitor", "--device", f"emu://steady?{AUTO}", "--arm", "--seconds", "3"]) == 0
+    out = capsys.readouterr().out
+    rows = re.findall(r"^\s*([01]) stimulating\S*\s+(?:\(held\)\s+)?(\d+)\s+(\d+)\s+\d+\s+(\d+)", out, re.M)
+    assert {r[0] for r in rows} == {"0", "1"}, out
+    e = firmware_module("sim_electrode")
+    for _ch, i_ua, t_us, rp in rows:
+        model = e.Electrode().rp_kohm(int(i_ua), int(t_us)) * 1000
+        assert abs(int(rp) - model) < 0.03 * model
+    assert "disarmed" in out
+
+
+@needs_emulator
+def test_calibrate_then_record_arm_is_accepted_by_audit(tmp_path, capsys):
+    assert main(["calibrate", "--device", "emu://steady", "--i0-ua", "1000", "--t0-us", "1000",
+                 "--x-star-ohm", "-1670", "--y-star-pc", "186000"]) == 0
+    assert "ok" in capsys.readouterr().out
+    f = tmp_path / "run.csv"
+    assert main(["record", str(f), "--device", f"emu://gel-step?channels=1&{AUTO}", "--arm", "--seconds", "3"]) == 0
+    meta, rows = read_recording(f)
+    assert meta["board"] == "pico-stmisola" and len([r for r in rows]) >= 20
+    capsys.readouterr()
+    assert main(["audit", str(f)]) == 0
+    assert "bit-exact" in capsys.readouterr().out
+
+
+@needs_emulator
+def test_no_node_is_one_clear_error(monkeypatch, capsys):
+    monkeypatch.setenv("PATH", "/nonexistent")
+    assert main(["info", "--device", "emu://steady"]) == 2
+    assert "Node" in capsys.readouterr().err
+
+
+@needs_emulator
+def test_the_emulator_dying_is_disconnected_with_its_reason():
+    from steadytouch.transport import Disconnected, open_transport
+
+    with open_transport("emu://steady") as t:
+        t.host.p.kill()
+        with pytest.raises(Disconnected, match="the emulated Pico stopped"):
+            while True:
+                t.read(1.0)
