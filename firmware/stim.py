@@ -47,6 +47,39 @@ if not (hp.O_T == hp.O_I + 2 and hp.O_VP == hp.O_I + 4 and hp.O_RP == hp.O_I + 8
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 
 
+@micropython.viper
+def _peak3(buf, n: int) -> int:
+    """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
+    12-bit ADC counts, n >= 3). Viper: machine code on the rp2 (mpy-cross
+    -march=armv6m) and in the unix VM; no Python objects, nothing allocated.
+    Every value is < 4096, so 32-bit (ARM) and 64-bit (x64) words agree."""
+    p = ptr16(buf)
+    best = 0
+    a = int(p[0])
+    b = int(p[1])
+    k = 2
+    while k < n:
+        x = int(p[k])
+        if a > b:
+            lo = b
+            hi = a
+        else:
+            lo = a
+            hi = b
+        if x >= hi:
+            m = hi
+        elif x <= lo:
+            m = lo
+        else:
+            m = x
+        if m > best:
+            best = m
+        a = b
+        b = x
+        k += 1
+    return best
+
+
 class Channel:
     """State of one electrode channel: its controller and its supervisor."""
 
@@ -250,30 +283,7 @@ class Stimulator:
             if n == 2 and buf[1] < v:
                 v = buf[1]
             return v * self.uv_per_count // 1000
-        best = 0
-        a = buf[0]
-        b = buf[1]
-        k = 2
-        while k < n:
-            x = buf[k]
-            if a > b:
-                lo = b
-                hi = a
-            else:
-                lo = a
-                hi = b
-            if x >= hi:
-                m = hi
-            elif x <= lo:
-                m = lo
-            else:
-                m = x
-            if m > best:
-                best = m
-            a = b
-            b = x
-            k += 1
-        return best * self.uv_per_count // 1000
+        return _peak3(buf, n) * self.uv_per_count // 1000
 
     def _post_pulse(self, c, vp):
         c.vp = vp
