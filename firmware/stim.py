@@ -131,8 +131,12 @@ class Stimulator:
         if not 1 <= n <= 4 or n > board.n_channels:
             raise ValueError("n_channels=%d out of range [1, %d]" % (n, min(4, board.n_channels)))
         self.n = n
-        lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA,
-               max(hp.T_FLOOR_US, min(cfg.T_MIN_US, cfg.HARD_T_MAX_US)), cfg.HARD_T_MAX_US, cfg.HARD_Q_MAX_PC]
+        rate = rate_hz or cfg.RATE_HZ
+        if not hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ:
+            raise ValueError("rate_hz=%d out of range [%d, %d]" % (rate, hp.RATE_MIN_HZ, hp.RATE_MAX_HZ))
+        t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))  # the worst-case frame fits its period
+        t_min = max(hp.T_FLOOR_US, min(cfg.T_MIN_US, t_max))
+        lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
         self.chans = [Channel(k, lim) for k in range(n)]
         self.mode = sc.MODE_AKHTAR
@@ -513,8 +517,8 @@ class Stimulator:
             rate = r[hp.O_ARG + 1]
             if not sc.MODE_OPEN_LOOP <= mode <= sc.MODE_FAST:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ):
-                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)
+            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ and hp.frame_fits(rate, self.n, self.lim[3])):
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)  # or the frame would not fit
             self.mode = mode
             k = 0
             while k < self.n:
@@ -602,8 +606,8 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-        if not 1 <= t_max <= self.hard_t:
-            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
+        if not (1 <= t_max <= self.hard_t and hp.frame_fits(self.rate_hz, self.n, t_max)):
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
         if not i_min * t_min <= q_max <= self.hard_q:

@@ -67,6 +67,21 @@ KEEPALIVE_MAX_MS = const(10000)
 KEEPALIVE_DEFAULT_MS = const(1000)
 RATE_MIN_HZ = const(10)
 RATE_MAX_HZ = const(100)
+# The frame's worst case must fit its period: rate x channels x (t_max +
+# FRAME_COMPUTE_US_PER_CH) <= 1 s. A SET_MODE rate or SET_LIMITS t_max that
+# breaks it is refused (RES_OUT_OF_RANGE); at boot the default soft t_max is
+# lowered to the largest that fits (docs/performance.md).
+FRAME_COMPUTE_US_PER_CH = const(1000)
+
+
+def frame_fits(rate_hz, n_channels, t_max_us):
+    """True if n_channels pulses of t_max_us plus their compute fit one frame at rate_hz."""
+    return rate_hz * n_channels * (t_max_us + FRAME_COMPUTE_US_PER_CH) <= 1000000
+
+
+def t_max_fitting(rate_hz, n_channels):
+    """Longest t_max (us) that frame_fits() accepts at rate_hz with n_channels."""
+    return 1000000 // (rate_hz * n_channels) - FRAME_COMPUTE_US_PER_CH
 
 # ---- result codes (ACK byte 2) ----
 RES_OK = const(0)
