@@ -9,6 +9,8 @@
 # A board whose interrupts schedule Python callbacks that allocate (the rp2's
 # USB stack) provides irq_off()/irq_on(state): a section then runs with
 # interrupts held off, so no such callback can land inside it.
+import struct
+
 import sensation_core as sc
 import hid_protocol as hp
 
@@ -34,6 +36,48 @@ FW_VERSION = (0, 1, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
+# Telemetry bytes O_I..O_LOOP+1 in one struct.pack_into (allocation-free, also on
+# the rp2: every value is a small int): the same bytes as put_u16/put_i32 field by
+# field, in a twentieth of the calls. The offsets are checked at import.
+_TEL_FMT = "<HHiiiiiHHHHH"
+if not (hp.O_T == hp.O_I + 2 and hp.O_VP == hp.O_I + 4 and hp.O_RP == hp.O_I + 8 and hp.O_ME == hp.O_I + 12
+        and hp.O_MQT == hp.O_I + 16 and hp.O_MQL == hp.O_I + 20 and hp.O_STATUS == hp.O_I + 24
+        and hp.O_NEXT_I == hp.O_I + 26 and hp.O_NEXT_T == hp.O_I + 28 and hp.O_OVERRUNS == hp.O_I + 30
+        and hp.O_LOOP == hp.O_I + 32 and hp.O_TIME == hp.O_SEQ + 4):
+    raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
+
+
+@micropython.viper
+def _peak3(buf, n: int) -> int:
+    """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
+    12-bit ADC counts, n >= 3). Viper: machine code on the rp2 (mpy-cross
+    -march=armv6m) and in the unix VM; no Python objects, nothing allocated.
+    Every value is < 4096, so 32-bit (ARM) and 64-bit (x64) words agree."""
+    p = ptr16(buf)
+    best = 0
+    a = int(p[0])
+    b = int(p[1])
+    k = 2
+    while k < n:
+        x = int(p[k])
+        if a > b:
+            lo = b
+            hi = a
+        else:
+            lo = a
+            hi = b
+        if x >= hi:
+            m = hi
+        elif x <= lo:
+            m = lo
+        else:
+            m = x
+        if m > best:
+            best = m
+        a = b
+        b = x
+        k += 1
+    return best
 
 
 class Channel:
@@ -87,8 +131,12 @@ class Stimulator:
         if not 1 <= n <= 4 or n > board.n_channels:
             raise ValueError("n_channels=%d out of range [1, %d]" % (n, min(4, board.n_channels)))
         self.n = n
-        lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA,
-               max(hp.T_FLOOR_US, min(cfg.T_MIN_US, cfg.HARD_T_MAX_US)), cfg.HARD_T_MAX_US, cfg.HARD_Q_MAX_PC]
+        rate = rate_hz or cfg.RATE_HZ
+        if not hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ:
+            raise ValueError("rate_hz=%d out of range [%d, %d]" % (rate, hp.RATE_MIN_HZ, hp.RATE_MAX_HZ))
+        t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))  # the worst-case frame fits its period
+        t_min = max(hp.T_FLOOR_US, min(cfg.T_MIN_US, t_max))
+        lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
         self.chans = [Channel(k, lim) for k in range(n)]
         self.mode = sc.MODE_AKHTAR
@@ -239,30 +287,7 @@ class Stimulator:
             if n == 2 and buf[1] < v:
                 v = buf[1]
             return v * self.uv_per_count // 1000
-        best = 0
-        a = buf[0]
-        b = buf[1]
-        k = 2
-        while k < n:
-            x = buf[k]
-            if a > b:
-                lo = b
-                hi = a
-            else:
-                lo = a
-                hi = b
-            if x >= hi:
-                m = hi
-            elif x <= lo:
-                m = lo
-            else:
-                m = x
-            if m > best:
-                best = m
-            a = b
-            b = x
-            k += 1
-        return best * self.uv_per_count // 1000
+        return _peak3(buf, n) * self.uv_per_count // 1000
 
     def _post_pulse(self, c, vp):
         c.vp = vp
@@ -343,8 +368,7 @@ class Stimulator:
         b = self.tx
         hp.clear(b)
         b[hp.O_TYPE] = typ
-        hp.put_i32(b, hp.O_SEQ, self.seq)
-        hp.put_i32(b, hp.O_TIME, self.frame_t)
+        struct.pack_into("<ii", b, hp.O_SEQ, self.seq, self.frame_t)
         self.seq = (self.seq + 1) & 0x3FFFFFFF
         return b
 
@@ -354,18 +378,10 @@ class Stimulator:
         b[hp.O_CH] = c.ch
         b[hp.O_MODE] = ctl.mode
         b[hp.O_STOP] = c.stop
-        hp.put_u16(b, hp.O_I, c.di)
-        hp.put_u16(b, hp.O_T, c.dt)
-        hp.put_i32(b, hp.O_VP, c.vp)
-        hp.put_i32(b, hp.O_RP, c.rp)
-        hp.put_i32(b, hp.O_ME, ctl.me_ua2ms)
-        hp.put_i32(b, hp.O_MQT, ctl.mq_target_fc_per_ohm)
-        hp.put_i32(b, hp.O_MQL, ctl.mq_last_fc_per_ohm if c.di else 0)
-        hp.put_u16(b, hp.O_STATUS, ctl.status)
-        hp.put_u16(b, hp.O_NEXT_I, ctl.i_ua)
-        hp.put_u16(b, hp.O_NEXT_T, ctl.t_us)
-        hp.put_u16(b, hp.O_OVERRUNS, hp.sat16(self.overruns))
-        hp.put_u16(b, hp.O_LOOP, hp.sat16(self.loop_us))
+        # u16 fields take the low 16 bits as put_u16 does; the i32 fields are within +-2**30
+        struct.pack_into(_TEL_FMT, b, hp.O_I, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
+                         ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
+                         ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, hp.sat16(self.overruns), hp.sat16(self.loop_us))
         f = 0
         if c.armed:
             f |= hp.FLAG_ARMED
@@ -501,8 +517,8 @@ class Stimulator:
             rate = r[hp.O_ARG + 1]
             if not sc.MODE_OPEN_LOOP <= mode <= sc.MODE_FAST:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ):
-                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)
+            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ and hp.frame_fits(rate, self.n, self.lim[3])):
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)  # or the frame would not fit
             self.mode = mode
             k = 0
             while k < self.n:
@@ -590,8 +606,8 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-        if not 1 <= t_max <= self.hard_t:
-            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
+        if not (1 <= t_max <= self.hard_t and hp.frame_fits(self.rate_hz, self.n, t_max)):
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
         if not i_min * t_min <= q_max <= self.hard_q:
