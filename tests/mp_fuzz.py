@@ -13,7 +13,6 @@
 # suite, bench/fuzz.py for millions of reports.
 import sys
 
-import micropython
 
 import board_config as cfg
 import board_sim
@@ -21,6 +20,7 @@ import hid_protocol as hp
 import sensation_core as sc
 import sim_electrode
 import stim
+import mp_watch
 
 SEED = int(sys.argv[1])
 N = int(sys.argv[2])
@@ -67,25 +67,7 @@ def digest():
     return ",".join([str(p) for p in parts])
 
 
-seen = ["", "", 0]
-handle = s.handle
-
-
-def watched(r, now):
-    # inside the frame's heap lock: the digests are taken with the lock lifted for a
-    # moment, the handler itself runs locked
-    micropython.heap_unlock()
-    seen[0] = digest()
-    micropython.heap_lock()
-    res = handle(r, now)
-    micropython.heap_unlock()
-    seen[1] = digest()
-    seen[2] += 1
-    micropython.heap_lock()
-    return res
-
-
-s.handle = watched
+seen = mp_watch.watch(s, digest)
 
 failures = []
 pulses = [0]

@@ -5,12 +5,12 @@
 # may change). A line "F n" runs n frames and prints the digest.
 import sys
 
-import micropython
 
 import board_config as cfg
 import board_sim
 import sim_electrode
 import stim
+import mp_watch
 
 clock = board_sim.VirtualClock()
 usb = board_sim.MemoryUSB(keep=True)
@@ -28,24 +28,7 @@ def digest():
     return ",".join([str(p) for p in parts])
 
 
-seen = ["", ""]
-handle = s.handle
-
-
-def watched(r, now):
-    # runs inside the frame's heap lock: the digest is taken with the lock lifted
-    # for a moment, the handler itself runs locked
-    micropython.heap_unlock()
-    seen[0] = digest()
-    micropython.heap_lock()
-    res = handle(r, now)
-    micropython.heap_unlock()
-    seen[1] = digest()
-    micropython.heap_lock()
-    return res
-
-
-s.handle = watched
+seen = mp_watch.watch(s, digest)
 print("READY " + digest())
 while True:
     line = sys.stdin.readline()
