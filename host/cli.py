@@ -618,7 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     def add(name, fn, help, examples, device=True):
         s = sub.add_parser(name, help=help, description=help, formatter_class=raw, epilog="examples:\n" + examples)
         if device:
-            s.add_argument("--device", default=DEFAULT_URL, help=f"device URL: hid://VID:PID[/SERIAL] or sim://SCENARIO (default {DEFAULT_URL})")
+            s.add_argument("--device", default=DEFAULT_URL, help=f"device URL: hid://VID:PID[/SERIAL] (the board), sim://SCENARIO (the firmware in the VM) or emu://?scenario=NAME (the rp2 firmware on an emulated Pico) (default {DEFAULT_URL})")
         s.set_defaults(func=fn)
         return s
 

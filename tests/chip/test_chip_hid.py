@@ -1,6 +1,6 @@
 """USB HID on the emulated chip: the real Board brings up usb_hid64 on
 micropython-lib's usb-device-hid (board-lib, as mip installs it), the emulated host
-(tests/chip/usbhost.mjs) enumerates the board again, finds the HID interface with
+(host/emu/usbhost.mjs) enumerates the board again, finds the HID interface with
 its 64-byte interrupt IN and OUT endpoints, reads the report descriptor, drives a
 run with commands sent as OUT reports, and the host's protocol decoder
 (host/protocol.py) reads the telemetry of that run from the IN reports."""
