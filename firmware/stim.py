@@ -211,14 +211,12 @@ class Stimulator:
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
         board.feed_watchdog()
-        if self.keepalive_ms:  # before any pulse: none is fired once the host is overdue
-            self._enter()
-            self._check_keepalive(now)
-            self._leave()
         k = 0
         while k < self.n:
             c = self.chans[k]
             self._enter()
+            if k == 0 and self.keepalive_ms:  # before any pulse: none fires once the host is overdue
+                self._check_keepalive(now)
             ok = self._pre_pulse(c)
             self._leave()
             n = board.fire(k, c.t) if ok else 0
