@@ -125,8 +125,11 @@ class Device:
             except ProtocolError:
                 self.bad += 1
 
-    def command(self, report: bytes, timeout_s: float = 2.0):
-        """Send one OUT report; return its Ack/Info; DeviceError if refused or unanswered."""
+    def command(self, report: bytes, timeout_s: float | None = None):
+        """Send one OUT report; return its Ack/Info; DeviceError if refused or unanswered
+        within timeout_s (default: the transport's answer_s)."""
+        if timeout_s is None:
+            timeout_s = getattr(self.t, "answer_s", 2.0)
         self._write(report)
         name = COMMAND_WORDS.get(report[0], f"0x{report[0]:02x}")
         deadline = time.monotonic() + timeout_s

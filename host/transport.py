@@ -43,6 +43,8 @@ class Transport:
     # False for a simulated device on its virtual clock (keep-alive off there: its
     # time runs far faster than a host can answer); Device.live() then sends none
     realtime = True
+    # how long a command may wait for its answer (wall clock); Device.command's default
+    answer_s = 2.0
 
     def read(self, timeout_s: float) -> bytes | None:
         raise NotImplementedError
@@ -207,6 +209,8 @@ class EmuTransport(Transport):
     the next command (`auto=` calibrates and sets the paper's mode at open)."""
 
     BOOT_S = 120  # first use: npm ci, compile, flash image; then a few seconds
+    # the emulated chip can fall behind wall time on a loaded machine (never ahead of it)
+    answer_s = 10.0
 
     def __init__(self, scenario: str = "steady", channels: int = 2, seed: int = 1,
                  auto: tuple[int, int, int, int] | None = None):
@@ -251,18 +255,27 @@ class EmuTransport(Transport):
         except BaseException:
             self.close()
             raise
-        if auto:
-            self._auto(auto)
+        self._ready(auto)
 
-    def _auto(self, auto) -> None:
-        """The paper's mode and a calibration, sent over HID like any host command."""
+    def _ready(self, auto) -> None:
+        """Wait for the board's main loop (its first answer, over HID like any host command),
+        so a caller's first command is not sent into a chip still booting; then `auto=`:
+        the paper's mode and a calibration."""
         import sensation_core as sc
 
         from .device import Device, DeviceError
 
         d = Device(self)
         try:
-            d.command(d.cmds.set_mode(sc.MODE_AKHTAR), timeout_s=self.BOOT_S)  # the first answer: the loop is up
+            d.command(d.cmds.get_info(), timeout_s=self.BOOT_S)
+        except DeviceError:
+            self.close()
+            raise TransportError(f"emu://: the emulated Pico's main loop did not answer within {self.BOOT_S} s "
+                                 "(see .cache/chip/host.log)") from None
+        if not auto:
+            return
+        try:
+            d.command(d.cmds.set_mode(sc.MODE_AKHTAR))
             d.calibrate(*auto, hp.CH_ALL)
         except DeviceError as e:
             self.close()
