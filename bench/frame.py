@@ -25,7 +25,7 @@ class NullBoard:
         self.n_channels = n
         self.adc = [array("H", [1100 + (k % 7) for k in range(200)]) for _ in range(n)]
         self.sent = 0
-    def set_amplitude(self, ch, i): pass
+    def set_amplitude(self, ch, i): return i
     def stop(self, ch): pass
     def feed_watchdog(self): pass
     def fire(self, ch, t): return t // 10

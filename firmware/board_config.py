@@ -26,12 +26,18 @@ T_MIN_US = const(100)  # sensation floor (paper, Discussion)
 
 # ---- pins, one entry per channel ----
 GATE_PINS = (2, 3, 4, 5)  # PIO-driven gate (trigger) input of each stimulator
-AMP_PWM_PINS = (6, 7, 8, 9)  # filtered PWM -> amplitude input of each stimulator
 ADC_INPUTS = (0, 1, 2, 3)  # ADC input (GPIO 26+n) on each voltage monitor
 
+# ---- amplitude DAC: MCP4822 (dual 12-bit, SPI) -> op-amp stage -> stimulator amplitude input ----
+# channel k = output A (k even) / B (k odd) of the chip on DAC_CS_PINS[k // 2]; docs/hardware.md
+DAC_SPI_ID = const(0)
+DAC_SCK_PIN = const(18)  # SPI0 SCK
+DAC_MOSI_PIN = const(19)  # SPI0 TX
+DAC_MISO_PIN = const(16)  # SPI0 RX: unused (the MCP4822 has no output), left unconnected
+DAC_CS_PINS = (17, 20)  # one chip-select per MCP4822 (2 channels each), idle high
+DAC_SPI_HZ = const(10000000)  # the MCP4822 takes up to 20 MHz
 # ---- scales ----
-AMP_PWM_FREQ_HZ = const(200000)
-AMP_UA_AT_FULL = const(10000)  # 100 % PWM duty = this current (stimulator range setting)
+AMP_UA_AT_FULL = const(10000)  # current at DAC code 4096 (2.048 V x the buffer's gain): LSB = 2.44 uA
 ADC_SAMPLE_US = const(10)  # free-running ADC at 100 ksps during the pulse
 VMON_UV_PER_COUNT = const(27000)  # electrode uV per 12-bit ADC count (monitor gain and divider)
 PIO_FREQ_HZ = const(1000000)  # 1 us per PIO cycle

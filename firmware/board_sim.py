@@ -177,7 +177,9 @@ class SimBoard:
 
     # ---------------------------------------------------------- the board API
     def set_amplitude(self, ch, i_ua):
+        """Ideal output stage: delivers exactly i_ua (the board contract: returns the delivered uA)."""
         self.amp[ch] = i_ua
+        return i_ua
 
     def stop(self, ch):
         self.amp[ch] = 0

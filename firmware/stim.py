@@ -99,6 +99,8 @@ class Channel:
         self.t = 0
         self.di = 0  # pulse delivered this frame (telemetry)
         self.dt = 0
+        self.ai = 0  # the current the amplitude output was last set for (0: stopped)
+        self.ad = 0  # what the board said that setting delivers (board.set_amplitude's answer)
         self.vp = 0
         self.rp = 0
         self.held = False
@@ -259,6 +261,8 @@ class Stimulator:
         c.stop = reason
         c.i = 0
         c.t = 0
+        c.ai = 0  # the output must be set again before any pulse
+        c.ad = 0
 
     def _pre_pulse(self, c):
         """Last check before the gate opens: hard limits, independent of the controller."""
@@ -270,7 +274,13 @@ class Stimulator:
         if c.i > self.hard_i or c.t > self.hard_t or c.t < hp.T_FLOOR_US or c.i * c.t > self.hard_q:
             self._latch(c, hp.STOP_LIMIT)
             return False
-        c.di = c.i
+        ad = c.ad  # the delivered current is the truth: Rp, mQ and telemetry use it
+        if c.ai != c.i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
+            return False
+        if ad > self.hard_i or ad * c.t > self.hard_q:  # a board that would deliver beyond the hard limits
+            self._latch(c, hp.STOP_LIMIT)
+            return False
+        c.di = ad
         c.dt = c.t
         return True
 
@@ -343,8 +353,11 @@ class Stimulator:
         """Channel k's outputs follow its state: amplitude for the next pulse, or stopped."""
         c = self.chans[k]
         if c.armed:
-            self.board.set_amplitude(k, c.i)
+            c.ad = self.board.set_amplitude(k, c.i)  # the current the output stage will deliver
+            c.ai = c.i
         else:
+            c.ai = 0
+            c.ad = 0
             self.board.stop(k)
 
     def sync_outputs(self):

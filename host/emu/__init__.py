@@ -276,7 +276,7 @@ class Chip:
 
     def wiring(self, cfg, n: int):
         self.host.call("wiring", wiring={
-            "gate_pins": list(cfg.GATE_PINS[:n]), "pwm_pins": list(cfg.AMP_PWM_PINS[:n]),
+            "gate_pins": list(cfg.GATE_PINS[:n]), "dac": {"spi_id": cfg.DAC_SPI_ID, "cs_pins": list(cfg.DAC_CS_PINS)},
             "adc_inputs": list(cfg.ADC_INPUTS[:n]), "amp_full_ua": cfg.AMP_UA_AT_FULL,
             "uv_per_count": cfg.VMON_UV_PER_COUNT, "compliance_mv": cfg.COMPLIANCE_MV})
 
@@ -284,7 +284,8 @@ class Chip:
         self.host.call("load", ch=ch, load={"rs_ohm": rs_ohm, "rp_ohm": rp_ohm, "tau_us": tau_us, "open": open_})
 
     def take(self) -> dict:
-        """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns) so far."""
+        """Gate edges [pin, level, ns], pulses {ch, rise_ns, fall_ns, i_ua}, watchdog feeds (ns), DAC words
+        latched [ns, channel, word] so far, and the code each DAC output holds."""
         return self.host.call("take")
 
     def hid(self, send=(), report_descriptor: int = 0, device_descriptor: bool = False) -> dict:

@@ -5,9 +5,14 @@
 //     dividers (rp2040js 1.4.1 runs PIO on setTimeout, 1000 steps a macrotask,
 //     with no divider and no relation to emulated time), and records every
 //     edge of the gate pins in emulated nanoseconds;
+//   - is the amplitude DAC (MCP4822s on the SPI bus, one chip select each): takes
+//     every 16-bit word clocked in while a chip select is low, latches it at the
+//     select's rising edge (LDAC tied low), records it with its time, and keeps
+//     the SPI busy for the word's bits at the bus clock (so a write costs its
+//     real bus time in emulated us);
 //   - feeds the ADC per sample with the electrode's monitor voltage while the
 //     gate is high: V = I (Rs + Rp (1 - e^(-t/tau))), firmware/sim_electrode.py's
-//     model, I from the PWM duty the board set, clamped at compliance;
+//     model, I from the DAC code the board set, clamped at compliance;
 //   - records watchdog feeds and turns a watchdog reset into a reply;
 //   - is the USB host: CDC for the raw REPL, and the board's HID interface
 //     (enumerated again when the board re-connects with it), whose 64-byte IN
@@ -129,6 +134,8 @@ class Chip {
     this.loads = [];
     this.rise = new Map(); // gate pin -> [rise ns, i_ua]
     this.world = null; // a scenario's electrodes (setScenario), else the fixed loads
+    this.dacCodes = []; // the code each DAC output holds (channel k: chip k >> 1, output k & 1)
+    this.dacWrites = []; // [ns, channel, word] of every word latched
     this.installPio();
     this.installWatchdogLog();
     this.usb = new UsbHost(b);
@@ -203,6 +210,7 @@ class Chip {
   // ---------------------------------------------------------------- world: gate, amplitude, monitor
   setWiring(w) {
     this.wiring = w;
+    if (w.dac) this.installDac(w.dac);
     for (let k = 0; k < w.gate_pins.length; k++) {
       const pin = w.gate_pins[k];
       this.mcu.gpio[pin].addListener((v) => this.onGate(k, pin, v === GPIOPinState.High));
@@ -218,8 +226,40 @@ class Chip {
     };
   }
 
-  /** Amplitude set by the PWM duty of channel k's amplitude pin (the RC filter's steady state). */
+  /** MCP4822s on SPI d.spi_id, chip j selected by d.cs_pins[j] (datasheet DS20002249: a 16-bit word,
+   * bit 15 output B, bit 13 gain 1x, bit 12 active, bits 11..0 the code, latched at CS's rising edge). */
+  installDac(d) {
+    const spi = this.mcu.spi[d.spi_id];
+    this.dacCodes = new Array(2 * d.cs_pins.length).fill(0);
+    let bytes = null; // bytes clocked in while a chip select is low
+    let sel = -1;
+    const done = this.clock.createAlarm(() => spi.completeTransmit(0));
+    spi.onTransmit = (v) => {
+      if (bytes) bytes.push(v & 0xff);
+      const hz = spi.clockFrequency || 1e6;
+      done.schedule(Math.round((spi.dataBits * 1e9) / hz)); // the frame's bits on the wire
+    };
+    d.cs_pins.forEach((pin, j) => this.mcu.gpio[pin].addListener((v) => {
+      if (v === GPIOPinState.Low) {
+        bytes = [];
+        sel = j;
+      } else if (v === GPIOPinState.High && sel === j && bytes) {
+        if (bytes.length >= 2) { // the last 16 bits clocked in count
+          const word = (bytes[bytes.length - 2] << 8) | bytes[bytes.length - 1];
+          const ch = 2 * j + (word >> 15);
+          this.dacCodes[ch] = word & 0x1000 ? word & 0xfff : 0; // SHDN low: output off
+          this.dacWrites.push([this.clock.nanos, ch, word]);
+        }
+        bytes = null;
+        sel = -1;
+      }
+    }));
+  }
+
+  /** Amplitude of channel k: its DAC code (gain 1x) or, without a DAC, the PWM duty of its amplitude pin
+   * (the RC filter's steady state). */
   amplitudeUa(k) {
+    if (this.wiring.dac) return (this.wiring.amp_full_ua * (this.dacCodes[k] ?? 0)) / 4096;
     const pin = this.wiring.pwm_pins[k];
     const ch = this.mcu.pwm.channels[(pin >> 1) & 7];
     if (!(ch.csr & 1)) return 0;
@@ -348,7 +388,9 @@ function handle(msg) {
     case 'take': {
       // edges, pulses and watchdog feeds recorded so far (and forget them)
       const r = { edges: chip.edges, pulses: chip.pulses, feeds: chip.feeds, samples: chip.samples, nanos: chip.clock.nanos,
-        gate: chip.wiring ? chip.wiring.gate_pins.map((p) => chip.mcu.gpio[p].value === GPIOPinState.High ? 1 : 0) : [] };
+        gate: chip.wiring ? chip.wiring.gate_pins.map((p) => chip.mcu.gpio[p].value === GPIOPinState.High ? 1 : 0) : [],
+        dac_writes: chip.dacWrites, dac_codes: chip.dacCodes };
+      chip.dacWrites = [];
       chip.edges = [];
       chip.pulses = [];
       chip.feeds = [];

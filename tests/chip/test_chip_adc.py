@@ -1,7 +1,7 @@
 """ADC + DMA capture on the emulated chip: the harness puts the electrode model's
 monitor voltage on the ADC input at each conversion while the gate is high
 (V = I (Rs + Rp (1 - e^(-t/tau))), firmware/sim_electrode.py's model, I from the
-PWM duty the board set), and the real Stimulator on the real Board reports the
+DAC code the board set), and the real Stimulator on the real Board reports the
 model's Rp within the ADC's resolution."""
 
 import math
@@ -61,9 +61,9 @@ def count_ohm(cfg, i_ua):
     return cfg.VMON_UV_PER_COUNT / i_ua
 
 
-def pwm_step_ua(cfg):
-    """The amplitude's resolution: AMP_UA_AT_FULL over the PWM's TOP + 1 at 125 MHz."""
-    return cfg.AMP_UA_AT_FULL * cfg.AMP_PWM_FREQ_HZ / 125e6
+def dac_ua(cfg, i_ua):
+    """The current the DAC delivers for i_ua: the largest 12-bit code not above it, times the LSB."""
+    return (i_ua * 4096 // cfg.AMP_UA_AT_FULL) * cfg.AMP_UA_AT_FULL / 4096
 
 
 @pytest.mark.parametrize("i0, t0", [(1000, 1000), (2000, 300), (500, 4000)])
@@ -72,12 +72,14 @@ def test_rp_of_resistors_matches_within_one_adc_count(chip, cfg, i0, t0):
     rows, pulses, _ = run(chip, cfg, loads, i0, t0)
     assert len(rows) == 8 and len(pulses) == 8
     for (ch, di, dt, vp, rp, stop, _buf), p in zip(rows, pulses):
-        assert (ch, di, dt, stop) == (p["ch"], i0, t0, 0)
+        assert (ch, dt, stop) == (p["ch"], t0, 0)
         assert (p["fall_ns"] - p["rise_ns"]) == t0 * 1000
-        # the stimulator drives what the PWM duty says; its step is the amplitude's resolution
-        assert abs(p["i_ua"] - i0) <= pwm_step_ua(cfg)
-        # Rp = Vp / I_commanded, with Vp = I_pwm R: within one ADC count of the model
-        expect = model_ohm(loads[ch], t0) * p["i_ua"] / i0
+        # the stimulator drives what the DAC code says (never more than asked, less by under one 2.44 uA
+        # step), and the firmware takes that delivered current (rounded to 1 uA) as the truth
+        assert p["i_ua"] == dac_ua(cfg, i0) and i0 - cfg.AMP_UA_AT_FULL / 4096 < p["i_ua"] <= i0
+        assert di == int(p["i_ua"] + 0.5)  # half up, as dac_mcp4822.ua_for
+        # Rp = Vp / I_delivered: within one ADC count of the load itself
+        expect = model_ohm(loads[ch], t0)
         assert abs(rp - expect) <= count_ohm(cfg, i0) + 1, (ch, rp, expect)
 
 
@@ -108,10 +110,10 @@ def test_capture_of_an_electrode_is_sample_exact_and_rp_is_the_model_at_the_peak
         assert p["rise_ns"] < t_peak < p["fall_ns"]
         # the capture reaches the end of the pulse: its last conversion inside the pulse is within one period
         assert p["fall_ns"] - dt_ns <= max(t for t, _v in got if t < p["fall_ns"])
-        expect = model_ohm(load, (t_peak - p["rise_ns"]) / 1000) * p["i_ua"] / i0
+        expect = model_ohm(load, (t_peak - p["rise_ns"]) / 1000)  # Rp from the delivered current
         assert abs(rp - expect) <= count_ohm(cfg, i0) + 1, (rp, expect)
         # and how far that is below the model at the end of the pulse (reported, not a pass mark)
-        print(f"T={t0} us: Rp {rp} ohm, model at the end {model_ohm(load, t0) * p['i_ua'] / i0:.0f} ohm, "
+        print(f"T={t0} us: Rp {rp} ohm, model at the end {model_ohm(load, t0):.0f} ohm, "
               f"peak sample {(p['fall_ns'] - t_peak) / 1000:.1f} us before the fall")
 
 

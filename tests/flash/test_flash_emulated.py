@@ -97,7 +97,7 @@ def test_ctrl_c_stops_stimulation_and_keeps_the_repl_without_a_watchdog_reset(pi
     assert p.returncode == 0 and "alive" in p.stdout, p.stdout + p.stderr
     # every output low: gate and amplitude pins are plain GPIO (FUNCSEL 5 = SIO) driven low, no PIO running
     probe = ("import machine, board_config as c\n"
-             "pins = c.GATE_PINS + c.AMP_PWM_PINS\n"
+             "pins = c.GATE_PINS + (c.DAC_SCK_PIN, c.DAC_MOSI_PIN)\n"
              "print([machine.mem32[0x40014004 + 8 * p] & 0x1F for p in pins], "
              "machine.mem32[0xD0000010] & sum(1 << p for p in pins), machine.mem32[0x50200000] & 0xF)")
     time.sleep(2)
