@@ -1,8 +1,9 @@
 # The rp2 (Raspberry Pi Pico) board: PIO-gated pulses, amplitude by an SPI DAC
-# (dac_mcp4822.py, written after each pulse for the next one), free-running ADC -> FIFO -> rp2.DMA capture of the voltage monitor, the
-# hardware watchdog and the USB HID interface. Pins and scales: board_config.py
-# and docs/hardware.md. This layer needs the real chip; everything above it
-# runs in the MicroPython unix VM against board_sim.SimBoard, which has the same
+# (dac_mcp4822.py, written after each pulse for the next one), free-running
+# ADC -> FIFO -> rp2.DMA capture of the voltage monitor, the hardware watchdog
+# and the USB HID interface. Pins and scales: board_config.py and
+# docs/hardware.md. This layer needs the real chip; everything above it runs in
+# the MicroPython unix VM against board_sim.SimBoard, which has the same
 # interface. Registers: RP2040 datasheet, sections 4.9 (ADC) and 2.5 (DMA).
 import time
 from array import array
@@ -97,7 +98,6 @@ class Board:
         self.dt_us = cfg.ADC_SAMPLE_US
         self.n_max = cfg.HARD_T_MAX_US // cfg.ADC_SAMPLE_US + 4
         self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n)]
-        self.amp_full = cfg.AMP_UA_AT_FULL
         self.gates = [machine.Pin(cfg.GATE_PINS[k], machine.Pin.OUT, value=0) for k in range(n)]
         self.sms = []
         for k in range(n):
