@@ -151,6 +151,14 @@ def start_host(mpy_cross: str, mpy_dir: Path | None = None, die_with_parent: boo
     return host
 
 
+def serve_host(log: Path) -> Host:
+    """A Node host ready to `serve()` a board (nothing compiled: the board is what its flash holds)."""
+    check_emulator()
+    node = _tool("node")
+    install_rp2040js()
+    return Host(node, EMULATOR, CACHE, log, die_with_parent=True)
+
+
 class ChipError(AssertionError):
     """A Python exception on the board, or the host could not do what was asked."""
 
@@ -223,6 +231,16 @@ class Host:
         if "reset" in r:
             raise BoardReset(r["reset"], r["reset_ns"], r)
         raise ChipError(f"{op}: {r.get('error')}\nboard said: {r.get('rx', '')[-600:]}")
+
+    def serve(self, fs_image: Path | None = None, save_fs: Path | None = None, seconds: float = 0) -> tuple[int, int]:
+        """Boot a chip from its flash as at power-up (a blank board without fs_image) and serve
+        it on 127.0.0.1 until close(): its USB serial on the first port returned (pyserial's
+        socket://127.0.0.1:PORT), its HID interface on the second (the emu+tcp:// transport).
+        A hard reset reboots it with its flash kept; progress lines go to the host's log.
+        The process does nothing else from then on."""
+        r = self.call("serve", fs_image=str(fs_image) if fs_image else None,
+                      save_fs=str(save_fs) if save_fs else None, seconds=seconds)
+        return r["cdc_port"], r["hid_port"]
 
     def boot(self, fs_image: Path | None = None) -> "Chip":
         r = self.call("boot", fs_image=str(fs_image) if fs_image else None)
