@@ -36,7 +36,7 @@ FW = ".".join(str(v) for v in ast.literal_eval(
 
 @pytest.fixture(scope="module")
 def pico(tmp_path_factory):
-    log = tmp_path_factory.mktemp("emu") / "rp2tcp.log"
+    log = tmp_path_factory.mktemp("emu") / "emu.log"
     with emu.Pico(log, seconds=900) as p:
         yield p
 
