@@ -224,3 +224,34 @@ def test_emu_tcp_nothing_served_is_one_line():
     p = subprocess.run([EXE, "info", "--device", url], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert f"no emulated Pico served at {url}" in p.stderr and "python -m steadytouch.emu serve" in p.stderr
+
+
+# ------------------------------------------------------------------ python -m steadytouch.emu serve
+def test_serve_without_the_emulator_is_one_line(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "steadytouch.emu", "serve"], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, CHIP_EMULATOR=str(tmp_path)))
+    assert p.returncode == 2 and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "build-firmware.sh" in p.stderr
+
+
+def test_serve_prints_both_urls_and_a_blank_board_has_no_hid_device(tmp_path):
+    import signal
+
+    import emu
+
+    if not emu.available():
+        pytest.skip(emu.SKIP_REASON)
+    p = subprocess.Popen([sys.executable, "-m", "steadytouch.emu", "serve", "--seconds", "120", "--log",
+                          str(tmp_path / "emu.log")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        serial_url = p.stdout.readline().split()[-1]
+        hid_url = p.stdout.readline().split()[-1]
+        assert serial_url.startswith("socket://127.0.0.1:") and hid_url.startswith("emu+tcp://127.0.0.1:")
+        # stock MicroPython has no HID interface: like hid:// with no board, one line
+        q = subprocess.run([EXE, "info", "--device", hid_url], capture_output=True, text=True, timeout=60, cwd=ROOT)
+        assert q.returncode == 2 and len(q.stderr.strip().splitlines()) == 1, q.stderr
+        assert f"no HID device at {hid_url}: the board has no HID interface (yet)" in q.stderr
+    finally:
+        p.send_signal(signal.SIGINT)
+        p.wait(timeout=30)
+    assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
