@@ -5,7 +5,10 @@ driven through host/emu/host.mjs over JSON lines, one harness for the chip tests
 Set-up: ../shared/emulator beside the checkout (used in place), rp2040js pinned by
 host/emu/package.json + lock (npm ci into .cache/chip), the project's device files
 compiled with mpy-cross -march=armv6m into the board's /lib, and a flash image
-holding them, cached by content. Figures the JSON calls return are emulated time."""
+holding them, cached by content. Figures the JSON calls return are emulated time.
+`Host.serve()` (and `python -m steadytouch.emu serve`) instead serves a board booted from
+its own flash on two TCP ports, its USB serial and its HID interface, for `steadytouch
+flash --port socket://... --device emu+tcp://...` (tests/flash)."""
 
 from __future__ import annotations
 
