@@ -499,7 +499,8 @@ def cmd_flash(a) -> int:
             "USB libraries: `steadytouch flash` installs them)")
         return 0
     F.flash(F.Options(port=a.port, build_dir=Path(a.build_dir), lib_dir=a.lib_dir, online=a.online,
-                      dry_run=a.dry_run, boot_timeout_s=a.boot_timeout_s), say=say)
+                      dry_run=a.dry_run, boot_timeout_s=a.boot_timeout_s, device=a.device,
+                      hid_check=not a.no_hid_check), say=say)
     return 0
 
 
@@ -722,6 +723,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how long to wait for the board to come back and run after its reset (default 30)")
     s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, touch no board")
     s.add_argument("--build-only", action="store_true", help="compile only (what `make mpy` does)")
+    s.add_argument("--device", default=DEFAULT_URL, help="the board's HID interface, asked for the version after "
+                   f"the reset (default {DEFAULT_URL}; emu+tcp://127.0.0.1:PORT for an emulated Pico)")
+    s.add_argument("--no-hid-check", action="store_true", help="read the version back over the serial REPL instead "
+                   "of HID (also what happens when this computer has no HID backend)")
 
     s = add("fit", cmd_fit, "fit the lines of constant sensation and their convergence point (x*, y*) (Exp. 1)",
             "  steadytouch fit exp1.csv\n  steadytouch fit exp1.csv --json --out lab/", device=False)

@@ -1,6 +1,11 @@
 """`steadytouch flash`: compile the device's files with mpy-cross and deploy
 them, with the pinned USB libraries, to a Pico running MicroPython, over its
-serial REPL (mpremote's transport), then check that the firmware boots.
+serial REPL (mpremote's transport), then check that the firmware boots: after
+a reset the board's HID interface (--device, default hid://1209:0001) must
+appear and answer GET_INFO with the version just flashed, as every host
+command will reach it. The serial REPL readback is the fallback, only with
+--no-hid-check or when this computer has no HID backend (hidapi), and the
+output says so.
 
 One line per step; every failure is one FlashError line naming what to do.
 Safe to run again: files already on the board (same sha256) are not copied
@@ -15,6 +20,7 @@ import ast
 import base64
 import errno
 import hashlib
+import re
 import shutil
 import subprocess
 import sys
@@ -22,19 +28,24 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import hid_protocol as hp
+
 from . import boardlib
 from .simrun import FIRMWARE, SHARED
+from .transport import DEFAULT_URL
 
 # files the board does not need (the simulator and the demo)
 HOST_ONLY = {"board_sim.py", "sim_electrode.py", "worked_example.py"}
 MAIN_MODULE = "st_main"  # firmware/main.py compiled; MicroPython runs only a main.py source at boot:
 MAIN_STUB = "# steadytouch: the firmware's entry point is firmware/main.py, compiled to st_main.mpy\nimport st_main\n"
-RP2_VID = 0x2E8A
+RP2_VID = 0x2E8A  # a Pico with stock MicroPython; a running steadytouch board is hp.VID:hp.PID
 ERROR_LOG = "/last_error.txt"  # firmware/main.py ERROR_LOG
+UDEV_RULE_DOC = "docs/70-steadytouch.rules (docs/hardware.md)"
 WDT_CTRL = 0x40058000  # RP2040 watchdog CTRL; bit 30 ENABLE (firmware/board_rp2.py watchdog_pause)
 MIN_MICROPYTHON = (1, 23)  # machine.USBDevice
 STEPS = 7
 WRITE_CHUNK = 2048  # bytes of a file per raw-REPL exec
+TELEMETRY_S = 1.0  # after GET_INFO: how long the HID check watches the loop's telemetry
 
 
 class FlashError(RuntimeError):
@@ -107,10 +118,18 @@ def build(out: Path, libs: dict[str, Path] | None = None) -> Build:
     return b
 
 
+def fw_version() -> str:
+    """The version of the firmware being flashed (firmware/stim.py's FW_VERSION), as GET_INFO shows it."""
+    m = re.search(r"^FW_VERSION = (\(.*\))", (FIRMWARE / "stim.py").read_text(), re.M)
+    if not m:
+        raise FlashError(f"no FW_VERSION in {FIRMWARE / 'stim.py'}")
+    return ".".join(str(v) for v in ast.literal_eval(m.group(1)))
+
+
 def find_port() -> str:
     from serial.tools import list_ports
 
-    ports = [p.device for p in list_ports.comports() if p.vid == RP2_VID]
+    ports = [p.device for p in list_ports.comports() if p.vid == RP2_VID or (p.vid, p.pid) == (hp.VID, hp.PID)]
     if not ports:
         raise FlashError("no Raspberry Pi Pico found (USB VID 0x2E8A): connect it with MicroPython >= 1.23 "
                          "installed (docs/quickstart.md: hold BOOTSEL while plugging it in, copy the UF2), "
@@ -327,6 +346,8 @@ class Options:
     dry_run: bool = False
     boot_timeout_s: float = 30.0
     lib_url: str = boardlib.URL
+    device: str = DEFAULT_URL  # where the HID check finds the board after its reset
+    hid_check: bool = True  # False: read the version back over the serial REPL (--no-hid-check)
 
 
 def _n(n: int, word: str) -> str:
@@ -363,7 +384,8 @@ def flash(o: Options, say=print) -> BoardState | None:
         for dst, src in sorted(b.files.items()):
             say(f"    {src} -> :{dst}")
         say("  remove any .py that would shadow them; reset the board; wait for the firmware to boot; "
-            "read its version back over the REPL; reset it again to run")
+            + (f"ask its HID interface {o.device} for the version (GET_INFO) and watch its telemetry"
+               if o.hid_check else "read its version back over the serial REPL (--no-hid-check); reset it again"))
         if missing is not None and not o.online:
             raise FlashError("the pinned libraries are missing (step 2): flash would stop there")
         return None
@@ -383,9 +405,16 @@ def flash(o: Options, say=print) -> BoardState | None:
         _deploy(link, b, say)
     finally:
         link.close()
-    st = boot_check(port, o.boot_timeout_s, say)
-    say(f"done in {time.monotonic() - t0:.0f} s: the board runs steadytouch firmware {st.fw_text()}")
-    return st
+    want = fw_version()
+    why = None if o.hid_check else "--no-hid-check"
+    if why is None:
+        why = hid_unavailable(o.device)
+    if why is None:
+        boot_check_hid(port, o.device, want, o.boot_timeout_s, say)
+    else:
+        boot_check(port, o.boot_timeout_s, say, want, why)
+    say(f"done in {time.monotonic() - t0:.0f} s: the board runs steadytouch firmware {want}")
+    return want
 
 
 def _deploy(link: BoardLink, b: Build, say) -> None:
@@ -425,8 +454,101 @@ def _deploy(link: BoardLink, b: Build, say) -> None:
     _step(say, 6, f"firmware: copied {_n(len(order), 'file')}, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
 
 
-def boot_check(port: str, timeout_s: float, say) -> BoardState:
-    """Reset, let the firmware boot and run, stop it with Ctrl-C, read what it did, reset it to run.
+def hid_unavailable(url: str) -> str | None:
+    """Why this computer cannot reach a board over HID at all (no hidapi backend), else None."""
+    if not url.startswith("hid:"):
+        return None
+    try:
+        from .transport import _hid_module
+
+        _hid_module()
+    except (ImportError, OSError) as e:
+        return f"no HID backend on this computer ({e}; `make setup` installs hidapi)"
+    return None
+
+
+def boot_check_hid(port: str, url: str, want: str, timeout_s: float, say):
+    """Reset; wait for the board's HID interface at `url`; GET_INFO must answer with the version
+    flashed (`want`), and the loop's telemetry must flow with no firmware error. The board keeps
+    running. If the interface does not appear in time, the serial port tells why (_no_hid)."""
+    from .device import Device, DeviceError
+    from .protocol import ProtocolError, Telemetry
+    from .transport import TransportError, open_transport
+
+    link, _ = connect(port, timeout_s=6)
+    link.reset()
+    t_end = time.monotonic() + timeout_s
+    last = "it was not found"
+    while True:
+        left = t_end - time.monotonic()
+        if left <= 0:
+            _no_hid(port, url, timeout_s, last, say)
+        try:
+            t = open_transport(url)
+        except TransportError as e:  # not (yet) there
+            last = str(e)
+            time.sleep(min(0.5, max(0.0, t_end - time.monotonic())))
+            continue
+        try:
+            d = Device(t)
+            info = d.command(d.cmds.get_info(), timeout_s=max(1.0, min(t.answer_s, left)))
+            telemetry, t_watch = [], time.monotonic() + TELEMETRY_S
+            while time.monotonic() < t_watch:
+                r = d.read(max(0.0, t_watch - time.monotonic()))
+                if isinstance(r, Telemetry):
+                    telemetry.append(r)
+            break
+        except (DeviceError, TransportError, ProtocolError) as e:  # re-enumerating, or still booting
+            last = str(e)
+            time.sleep(0.3)
+        finally:
+            t.close()
+    if info.firmware != want:
+        raise FlashError(f"the board at {url} answers with steadytouch firmware {info.firmware}, but {want} was just "
+                         f"flashed onto {port}: is another steadytouch board plugged in? Name this one's HID device "
+                         "with --device hid://VID:PID/SERIAL (`steadytouch devices` lists them)")
+    bad = [r for r in telemetry if r.stop == hp.STOP_INTERNAL]
+    if bad:
+        raise FlashError(f"the firmware {want} answers over HID but reports a firmware error (latched) on channel "
+                         f"{bad[0].channel}: see `steadytouch monitor --device {url}`")
+    if not telemetry:
+        raise FlashError(f"the firmware {want} answered GET_INFO over HID but sent no telemetry for "
+                         f"{TELEMETRY_S:g} s: its loop is not running; see `mpremote connect {port} repl`")
+    _step(say, 7, f"boot check over HID ({url}): steadytouch {info.firmware} on {info.board} answered GET_INFO, "
+          f"the version flashed; {len(telemetry)} telemetry reports in {TELEMETRY_S:g} s, no firmware error")
+    return info
+
+
+def _no_hid(port: str, url: str, timeout_s: float, last: str, say):
+    """The HID interface did not appear in time: ask the serial port why, and say what to check."""
+    try:
+        link, st = connect(port, timeout_s=6)
+    except FlashError as e:
+        raise FlashError(f"after its reset the board came back neither over HID ({url}: {last}) nor on {port} "
+                         f"within {timeout_s:.0f} s ({e}): check the USB cable (a data cable, not a charge-only one), "
+                         "plug the board in again and run flash again") from None
+    try:
+        if st.log:
+            say("the firmware failed at boot:")
+            for line in st.log.rstrip().splitlines():
+                say("      " + line)
+            raise FlashError(f"the firmware did not boot (its log is {ERROR_LOG} on the board); the board waits in "
+                             "the REPL with every output off")
+        if st.frames:
+            raise FlashError(f"the firmware runs ({st.frames} frames, seen over the serial REPL on {port}) but its HID "
+                             f"interface {url} cannot be reached within {timeout_s:.0f} s: {last}. On Linux install "
+                             f"the udev rule {UDEV_RULE_DOC} and plug the board in again; --device names another "
+                             "device; --no-hid-check reads the version over the serial REPL instead")
+        raise FlashError(f"the firmware did not start within {timeout_s:.0f} s of its reset (no HID interface at "
+                         f"{url}: {last}; no loop and no error log on the serial port): see its output with "
+                         f"`mpremote connect {port} repl`, or allow longer with --boot-timeout-s")
+    finally:
+        link.reset()  # the Ctrl-C of connect() stopped it: run again
+
+
+def boot_check(port: str, timeout_s: float, say, want: str | None = None, why: str = "--no-hid-check") -> BoardState:
+    """The fallback (`why`: --no-hid-check, or no HID backend): reset, let the firmware boot and
+    run, stop it with Ctrl-C, read what it did over the serial REPL, reset it to run.
     The board's prints after its USB re-enumeration do not reach a host reliably, so the check
     waits, then looks; a Ctrl-C that lands before the loop started means: boot again, wait longer."""
     link, _ = connect(port, timeout_s=6)
@@ -459,8 +581,11 @@ def boot_check(port: str, timeout_s: float, say) -> BoardState:
                              "running); see the board's output with `mpremote connect PORT repl`")
         if st.errors:
             raise FlashError(f"the firmware ran {st.frames} frames with {st.errors} errors (last: {st.last_error})")
+        if want is not None and st.fw_text() != want:
+            raise FlashError(f"the board at {port} runs steadytouch firmware {st.fw_text()}, but {want} was just "
+                             "flashed: run flash again")
         _step(say, 7, f"boot check: steadytouch {st.fw_text()} ran {st.frames} frames with no error; "
-              "version read back over the REPL; restarting it")
+              f"version read back over the serial REPL, not over HID ({why}); restarting it")
     finally:
         link.reset()
     return st

@@ -9,6 +9,11 @@ pyserial's `loop://` handlers).
 - `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y]` — the real MicroPython rp2
   firmware on the emulated Pico (rp2040js, ../shared/emulator): its main loop
   (main_rp2) over its USB HID interface, the simulated electrode on its ADC.
+- `emu+tcp://127.0.0.1:PORT` — the HID interface of an emulated Pico that is
+  already running and served on TCP (`python -m steadytouch.emu serve`, or
+  host/emu's `serve`, beside its USB serial for mpremote and `steadytouch
+  flash --port socket://...`): attaches to that board as hid:// attaches to a
+  plugged-in one, without booting anything.
 
 Every transport moves whole 64-byte reports: `read(timeout_s)` returns one IN
 report or None on timeout, `write(report)` sends one OUT report. Decoding, gap
@@ -318,6 +323,86 @@ class EmuTransport(Transport):
             self.host.close()  # stdin EOF: the Node host exits, the emulated board with it
 
 
+class EmuTcpTransport(Transport):
+    """The HID interface of a running emulated Pico served on TCP (host/emu/host.mjs's
+    `serve`): one greeting line (`HID VVVV:PPPP`, or `NOHID why` when the board has no
+    HID interface enumerated: then there is no device, as hid:// finds none), then one
+    64-byte report in hex a line each way. The board falls behind wall time on a busy
+    machine, so a command may wait longer for its answer (answer_s)."""
+
+    answer_s = 10.0
+    CONNECT_S = 5.0
+
+    def __init__(self, host: str, port: int):
+        import socket
+
+        self.url = f"emu+tcp://{host}:{port}"
+        self.q: queue.Queue = queue.Queue()
+        self.why = ""
+        try:
+            self.sock = socket.create_connection((host, port), timeout=self.CONNECT_S)
+        except OSError as e:
+            raise TransportError(f"no emulated Pico served at {self.url} ({e.strerror or e}): start one with "
+                                 "`python -m steadytouch.emu serve`") from None
+        try:
+            self.rfile = self.sock.makefile("rb")
+            greeting = self.rfile.readline(200).decode("ascii", "replace").strip()
+        except OSError as e:
+            self.close()
+            raise TransportError(f"the emulated Pico at {self.url} did not greet ({e})") from None
+        word, _, rest = greeting.partition(" ")
+        if word != "HID":
+            self.close()
+            if word == "NOHID":
+                raise TransportError(f"no HID device at {self.url}: {rest or 'the board has no HID interface'}")
+            raise TransportError(f"{self.url} is not an emulated Pico's HID port (it said {greeting[:60]!r})")
+        try:
+            vid_s, pid_s = rest.split()[0].split(":")
+            self.ids = (int(vid_s, 16), int(pid_s, 16))
+        except (IndexError, ValueError):
+            self.ids = None  # the board did not answer GET_DESCRIPTOR(device) in time
+        self.sock.settimeout(None)
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self):
+        try:
+            for line in self.rfile:
+                try:
+                    r = bytes.fromhex(line.decode("ascii").strip())
+                except ValueError:
+                    self.why = f"a line that is not a report: {line[:60]!r}"
+                    break
+                if len(r) != hp.REPORT_LEN:
+                    self.why = f"a {len(r)}-byte report; expected {hp.REPORT_LEN}"
+                    break
+                self.q.put(r)
+        except (OSError, ValueError):
+            pass
+        self.q.put(None)
+
+    def read(self, timeout_s: float) -> bytes | None:
+        try:
+            r = self.q.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        if r is None:
+            self.q.put(None)
+            raise Disconnected(f"{self.url} went away ({self.why or 'the board reset or left the USB bus'})")
+        return r
+
+    def write(self, report: bytes) -> None:
+        try:
+            self.sock.sendall(bytes(report).hex().encode() + b"\n")
+        except OSError as e:
+            raise Disconnected(f"{self.url} went away ({e})") from None
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except (OSError, AttributeError):
+            pass
+
+
 def _flag(q, name, default):
     v = q.get(name, [default])[0]
     return v
@@ -355,6 +440,15 @@ def open_transport(url: str, hid_module=None) -> Transport:
         if mode not in ("akhtar", "fast", "open", "charge", "energy", "pwlinear"):
             raise TransportError(f"bad device URL {url!r}: mode is akhtar, fast, open, charge, energy or pwlinear")
         return SimTransport(scenario, channels, seed, realtime, _flag(q, "auto", None), mode, frames)
+    if u.scheme == "emu+tcp":
+        try:
+            port = u.port
+        except ValueError:
+            port = None
+        if not u.hostname or port is None or not 1 <= port <= 65535 or u.path.strip("/") or u.query:
+            raise TransportError(f"bad device URL {url!r}: use emu+tcp://HOST:PORT with PORT in [1, 65535], "
+                                 "e.g. emu+tcp://127.0.0.1:40124")
+        return EmuTcpTransport(u.hostname, port)
     if u.scheme == "emu":
         q = parse_qs(u.query)
         scenario = (u.netloc + u.path).strip("/") or _flag(q, "scenario", "steady")
@@ -390,4 +484,5 @@ def open_transport(url: str, hid_module=None) -> Transport:
             raise TransportError(f"bad device URL {url!r}: {e}") from None
         return EmuTransport(scenario, channels, seed, auto)
     raise TransportError(f"unknown device {url!r}: use {DEFAULT_URL} (the board over USB), sim://SCENARIO "
-                         "(the simulator, e.g. sim://peel) or emu://SCENARIO (the firmware on the emulated Pico)")
+                         "(the simulator, e.g. sim://peel), emu://SCENARIO (the firmware on the emulated Pico) or "
+                         "emu+tcp://HOST:PORT (an emulated Pico already served)")

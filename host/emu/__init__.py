@@ -5,7 +5,10 @@ driven through host/emu/host.mjs over JSON lines, one harness for the chip tests
 Set-up: ../shared/emulator beside the checkout (used in place), rp2040js pinned by
 host/emu/package.json + lock (npm ci into .cache/chip), the project's device files
 compiled with mpy-cross -march=armv6m into the board's /lib, and a flash image
-holding them, cached by content. Figures the JSON calls return are emulated time."""
+holding them, cached by content. Figures the JSON calls return are emulated time.
+`Host.serve()` (and `python -m steadytouch.emu serve`) instead serves a board booted from
+its own flash on two TCP ports, its USB serial and its HID interface, for `steadytouch
+flash --port socket://... --device emu+tcp://...` (tests/flash)."""
 
 from __future__ import annotations
 
@@ -151,6 +154,14 @@ def start_host(mpy_cross: str, mpy_dir: Path | None = None, die_with_parent: boo
     return host
 
 
+def serve_host(log: Path) -> Host:
+    """A Node host ready to `serve()` a board (nothing compiled: the board is what its flash holds)."""
+    check_emulator()
+    node = _tool("node")
+    install_rp2040js()
+    return Host(node, EMULATOR, CACHE, log, die_with_parent=True)
+
+
 class ChipError(AssertionError):
     """A Python exception on the board, or the host could not do what was asked."""
 
@@ -223,6 +234,16 @@ class Host:
         if "reset" in r:
             raise BoardReset(r["reset"], r["reset_ns"], r)
         raise ChipError(f"{op}: {r.get('error')}\nboard said: {r.get('rx', '')[-600:]}")
+
+    def serve(self, fs_image: Path | None = None, save_fs: Path | None = None, seconds: float = 0) -> tuple[int, int]:
+        """Boot a chip from its flash as at power-up (a blank board without fs_image) and serve
+        it on 127.0.0.1 until close(): its USB serial on the first port returned (pyserial's
+        socket://127.0.0.1:PORT), its HID interface on the second (the emu+tcp:// transport).
+        A hard reset reboots it with its flash kept; progress lines go to the host's log.
+        The process does nothing else from then on."""
+        r = self.call("serve", fs_image=str(fs_image) if fs_image else None,
+                      save_fs=str(save_fs) if save_fs else None, seconds=seconds)
+        return r["cdc_port"], r["hid_port"]
 
     def boot(self, fs_image: Path | None = None) -> "Chip":
         r = self.call("boot", fs_image=str(fs_image) if fs_image else None)

@@ -22,9 +22,15 @@
 // streaming mode of the emu:// transport (see streamMode below): from then on every
 // stdin line is one HID OUT report in hex and every stdout line one IN report in
 // hex, the board runs paced by the wall clock, and stdin EOF ends the process.
+// The op `serve` (see serveMode below) instead boots the board from its flash as at
+// power-up and serves it on two TCP ports on 127.0.0.1, as a Pico on a USB cable is
+// two devices: its USB serial (CDC bytes, for mpremote and `steadytouch flash --port
+// socket://127.0.0.1:PORT`) and its HID interface (64-byte reports as hex lines, for
+// the emu+tcp:// transport); a hard reset reboots the chip with its flash kept.
 // Usage:
 //   node host.mjs EMULATOR_DIR CACHE_DIR
 import fs from 'node:fs';
+import net from 'node:net';
 import path from 'node:path';
 import readline from 'node:readline';
 import { register } from 'node:module';
@@ -116,12 +122,15 @@ function rng(seed) {
 }
 
 class Chip {
-  constructor(fsImage) {
+  /** fsImage: a littlefs image for flash offset 0xa0000; flash: the whole flash of a chip
+   *  that reset (serving: a hard reset keeps the flash, as on a real Pico). */
+  constructor(fsImage, flash = null) {
     const b = new Board({
       uf2: path.join(emuDir, 'firmware.uf2'),
       bootrom: path.join(emuDir, 'bootrom-b1.bin'),
     });
-    if (fsImage) b.mcu.flash.set(fs.readFileSync(fsImage), 0xa0000);
+    if (flash) b.mcu.flash.set(flash);
+    else if (fsImage) b.mcu.flash.set(fs.readFileSync(fsImage), 0xa0000);
     this.b = b;
     this.mcu = b.mcu;
     this.clock = b.clock;
@@ -357,6 +366,10 @@ const out = (o) => process.stdout.write(JSON.stringify(o) + '\n');
 
 function handle(msg) {
   const op = msg.op;
+  if (op === 'serve') {
+    serveMode(msg); // replies once both ports listen
+    return null;
+  }
   if (op === 'boot') {
     chip = new Chip(msg.fs_image || null);
     const banner = chip.b.boot();
@@ -532,14 +545,205 @@ function onReportLine(line) {
   chip.usb.pump();
 }
 
+// -------------------------------------------------------------------- serving (flash end to end)
+// The board boots from its flash as at power-up (main.py runs) and runs paced by the wall
+// clock like streamMode, while two TCP servers on 127.0.0.1 play its USB cable:
+//   - the serial port: the CDC byte stream both ways (pyserial's socket:// URL), as
+//     ../shared/emulator/rp2tcp.mjs serves it;
+//   - the HID interface: on connect one line, `HID VVVV:PPPP` (the device descriptor's
+//     ids) when the board's HID interface is enumerated, else `NOHID why` and the
+//     connection closes (a host that finds no such device); then each line the client
+//     sends is one OUT report in hex, each IN report the board sends one line back.
+// One client per port at a time (a new one replaces the old). A hard reset (machine.reset(),
+// a watchdog timeout) or a USB re-connect drops the clients, as unplugging a cable would,
+// and a hard reset reboots a fresh chip with the whole flash kept. Progress goes to stderr
+// (`hard reset, REASON`, `emulated host: enumerating again`, HID client report counts).
+const PENDING_HIGH = 64 * 1024; // pause the serial client while this many bytes wait for the board
+let serving = false;
+let atExit = null;
+const hex4 = (v) => v.toString(16).padStart(4, '0');
+
+function serveMode(msg) {
+  serving = true;
+  let c = new Chip(msg.fs_image || null);
+  let serial = null; // the serial client's socket
+  let hid = null; // the HID client: {sock, in, out, buf}
+  const w0 = Date.now();
+  const log = (s) => process.stderr.write(`[emu] ${s} (${((Date.now() - w0) / 1000).toFixed(1)} s wall, ` +
+    `${(c.b.nanos / 1e9).toFixed(2)} s emulated)\n`);
+  const dropHid = (why) => {
+    if (!hid) return;
+    log(`HID client disconnected (${why}) after ${hid.out} OUT and ${hid.in} IN reports`);
+    const s = hid.sock;
+    hid = null;
+    s.destroy();
+  };
+  const attach = (chip) => {
+    const b = chip.b;
+    b.cdc.onSerialData = (buf) => {
+      if (serial) serial.write(Buffer.from(buf));
+    };
+    const connected = b.cdc.onDeviceConnected;
+    b.cdc.onDeviceConnected = () => {
+      connected();
+      log('USB CDC enumerated by the emulated host');
+    };
+    chip.usb.onLog = (s) => {
+      if (s.startsWith('emulated host')) dropHid('the board re-connected USB');
+      log(s);
+    };
+    chip.usb.onReport = (hex) => {
+      if (!hid) return; // nobody reads the interface: the report is gone, as on a real host
+      hid.in++;
+      hid.sock.write(hex + '\n');
+    };
+  };
+  attach(c);
+  const hidReady = () => {
+    const u = c.usb;
+    if (!u.hid || !c.b.cdc.initialized) return 'the board has no HID interface (yet)';
+    if (!u.ids && c.b.nanos < u.hidAt + 100e6) return 'the board is still enumerating';
+    return null;
+  };
+
+  const serialServer = net.createServer((sock) => {
+    if (serial) {
+      log('new serial client replaces the old one');
+      serial.destroy();
+    }
+    serial = sock;
+    sock.setNoDelay(true);
+    log('serial client connected');
+    sock.on('data', (d) => {
+      if (sock !== serial) return;
+      c.b.write(d);
+      if (c.b.pending.length > PENDING_HIGH) sock.pause();
+    });
+    sock.on('error', () => {});
+    sock.on('close', () => {
+      if (sock === serial) {
+        serial = null;
+        log('serial client disconnected');
+      }
+    });
+  });
+
+  const hidServer = net.createServer((sock) => {
+    sock.setNoDelay(true);
+    sock.on('error', () => {});
+    const why = hidReady();
+    if (why) {
+      sock.end(`NOHID ${why}\n`);
+      return;
+    }
+    if (hid) dropHid('a new HID client replaces it');
+    const me = { sock, in: 0, out: 0, buf: '' };
+    hid = me;
+    c.usb.outQueue = [];
+    const ids = c.usb.ids ? `${hex4(c.usb.ids.vid)}:${hex4(c.usb.ids.pid)}` : '????:????';
+    sock.write(`HID ${ids}\n`);
+    log(`HID client connected (device ${ids})`);
+    sock.on('data', (d) => {
+      if (hid !== me) return;
+      me.buf += d.toString('latin1');
+      for (let k = me.buf.indexOf('\n'); k >= 0; k = me.buf.indexOf('\n')) {
+        const line = me.buf.slice(0, k).trim();
+        me.buf = me.buf.slice(k + 1);
+        if (!line) continue;
+        if (!/^[0-9a-fA-F]{128}$/.test(line)) {
+          log(`HID client sent a line that is not a 64-byte report in hex, ignored: ${line.slice(0, 40)}`);
+          continue;
+        }
+        me.out++;
+        c.usb.outQueue.push(Uint8Array.from(Buffer.from(line, 'hex')));
+        c.usb.pump();
+      }
+    });
+    sock.on('close', () => {
+      if (hid === me) {
+        hid = null;
+        log(`HID client disconnected after ${me.out} OUT and ${me.in} IN reports`);
+      }
+    });
+  });
+
+  atExit = () => {
+    if (msg.save_fs) fs.writeFileSync(msg.save_fs, c.b.fsBytes());
+  };
+  const finish = (code) => {
+    if (stopped) return;
+    stopped = true;
+    atExit();
+    process.exit(code);
+  };
+  if (msg.seconds) setTimeout(() => {
+    log(`served ${msg.seconds} s: exit`);
+    finish(0);
+  }, msg.seconds * 1000).unref();
+
+  let target = 0;
+  let lastWall = performance.now();
+  const step = () => {
+    if (stopped) return;
+    const now = performance.now();
+    target += (now - lastWall) * 1e6;
+    lastWall = now;
+    if (target - c.b.nanos > MAX_LAG_NS) target = c.b.nanos + MAX_LAG_NS;
+    try {
+      advance(c.b, target, SLICE_MS);
+    } catch (e) {
+      log(`emulator error: ${e.stack || e}`);
+      return finish(3);
+    }
+    const u = c.usb;
+    u.pump();
+    if (u.hid && u.ids === null && !u.ep0 && c.b.cdc.initialized && c.b.nanos > u.hidAt + 5e6) {
+      u.ids = false; // asked
+      u.askIds((ids) => {
+        u.ids = ids;
+        log(`device descriptor: ${hex4(ids.vid)}:${hex4(ids.pid)}`);
+      });
+    }
+    if (c.b.resetReason) {
+      const why = c.b.resetReason.replace('forced reset', 'forced');
+      log(`hard reset, ${why}: rebooting the emulated chip, flash kept`);
+      const flash = c.b.mcu.flash.slice();
+      c = new Chip(null, flash);
+      attach(c);
+      target = 0;
+      if (serial) {
+        serial.destroy();
+        serial = null;
+        log('serial client disconnected (the board left the USB bus)');
+      }
+      dropHid('the board reset');
+    }
+    if (serial && serial.isPaused() && c.b.pending.length < PENDING_HIGH / 4) serial.resume();
+    if (c.b.nanos < target) setImmediate(step);
+    else setTimeout(step, 1);
+  };
+
+  let listening = 0;
+  const ready = () => {
+    if (++listening < 2) return;
+    out({ ok: true, cdc_port: serialServer.address().port, hid_port: hidServer.address().port });
+    log(`serving: booting MicroPython from flash${msg.fs_image ? ` with filesystem ${msg.fs_image}` : ''}`);
+    step();
+  };
+  serialServer.listen(msg.cdc_port || 0, '127.0.0.1', ready);
+  hidServer.listen(msg.hid_port || 0, '127.0.0.1', ready);
+}
+
 const rl = readline.createInterface({ input: process.stdin, terminal: false });
 rl.on('line', (line) => {
   if (streaming) return onReportLine(line);
+  if (serving) return; // stdin only tells when the host is gone (EOF)
   if (!line.trim()) return;
   let msg;
   try {
     msg = JSON.parse(line);
-    out({ ok: true, ...handle(msg) });
+    const r = handle(msg);
+    if (r) out({ ok: true, ...r });
     if (streaming) streamMode();
   } catch (e) {
     if (e instanceof BoardReset) out({ ok: false, reset: e.reason, reset_ns: e.nanos, nanos: chip.clock.nanos,
@@ -549,5 +753,6 @@ rl.on('line', (line) => {
 });
 rl.on('close', () => {
   stopped = true;
+  if (atExit) atExit();
   process.exit(0); // the host is gone (stdin EOF): stop the board with it
 });

@@ -51,6 +51,9 @@ export class UsbHost {
     this.ep0 = null; // pending control-IN request: collects EP0 data
     this.sent = 0;
     this.onReport = null; // streaming: called with each IN report (hex) instead of collecting it
+    this.ids = null; // {vid, pid} of the device descriptor once asked for (askIds)
+    this.hidAt = 0; // emulated ns the HID interface was last enumerated
+    this.onLog = null; // serving: told of re-enumerations and of the HID interface appearing
 
     const cdcWrite = usb.onEndpointWrite;
     usb.onEndpointWrite = (ep, buf) => {
@@ -62,6 +65,11 @@ export class UsbHost {
       }
       if (ep === 0 && this.ep0) {
         this.ep0.data.push(...buf);
+        const r = this.ep0;
+        if (r.done && r.data.length >= r.length) {
+          this.ep0 = null;
+          r.done(r.data.slice(0, r.length));
+        }
         return;
       }
       const complete = () => cdc.descriptorsSize !== null && cdc.descriptors.length === cdc.descriptorsSize;
@@ -71,6 +79,10 @@ export class UsbHost {
         this.config = [...cdc.descriptors];
         this.hid = parseHid(this.config);
         this.enumerations++;
+        this.hidAt = clock.nanos;
+        this.ids = null;
+        if (this.onLog && this.hid) this.onLog(`HID interface ${this.hid.number} enumerated (IN ep ${this.hid.in}, ` +
+          `OUT ep ${this.hid.out}, ${this.hid.in_size} bytes)`);
       }
     };
 
@@ -98,8 +110,11 @@ export class UsbHost {
           outEndpoint: -1 });
         board.heldRead = null;
         this.hid = null;
+        this.ids = null;
+        this.ep0 = null;
         this.heldOut = null;
         usb.resetDevice();
+        if (this.onLog) this.onLog('emulated host: enumerating again');
       }
     };
   }
@@ -111,6 +126,13 @@ export class UsbHost {
       this.usb.endpointReadDone(ep, this.outQueue.shift());
       this.sent++;
     }
+  }
+
+  /** The device descriptor's idVendor and idProduct, asked for without running the board
+   *  (serving): done({vid, pid}) once the board answered on the control pipe. */
+  askIds(done) {
+    this.ep0 = { data: [], length: 18, done: (d) => done({ vid: d[8] | (d[9] << 8), pid: d[10] | (d[11] << 8) }) };
+    this.usb.sendSetupPacket(new Uint8Array([0x80, 6, 0, 1, 0, 0, 18, 0]));
   }
 
   /** A standard GET_DESCRIPTOR on the control pipe (to the device, or to interface `itf`); its bytes. */

@@ -1,13 +1,17 @@
 """`steadytouch flash` end to end on the emulated Pico (real MicroPython v1.28.0
-for the RP2040 in rp2040js, its USB serial on a TCP port): a blank board, the
-firmware's boot and loop, Ctrl-C maintenance without a watchdog reset, a
-re-flash onto the running board, a boot error kept in the board's log, and a
-board in a watchdog reset loop. The tests run in order on one board (about
-three minutes). Step timings: bench/flash_emulated.py, docs/performance.md."""
+for the RP2040 in rp2040js, served by host/emu: its USB serial and its HID
+interface on two TCP ports, as one board on one cable): a blank board, the
+firmware's boot and loop with its version read back over HID, Ctrl-C
+maintenance without a watchdog reset, a re-flash onto the running board, a HID
+interface that cannot be reached, a boot error kept in the board's log, and a
+board in a watchdog reset loop (with the serial-REPL fallback). The tests run
+in order on one board (about four minutes). Step timings:
+bench/flash_emulated.py, docs/performance.md."""
 
 import ast
 import os
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -32,15 +36,17 @@ FW = ".".join(str(v) for v in ast.literal_eval(
 
 @pytest.fixture(scope="module")
 def pico(tmp_path_factory):
-    log = tmp_path_factory.mktemp("emu") / "rp2tcp.log"
+    log = tmp_path_factory.mktemp("emu") / "emu.log"
     with emu.Pico(log, seconds=900) as p:
         yield p
 
 
-def flash(pico, build_dir, *extra, timeout=300):
+def flash(pico, build_dir, *extra, timeout=300, device=None, boot_timeout_s=120):
+    """`steadytouch flash` onto the served board; its HID check reaches the same board (emu+tcp://)."""
     t0 = time.monotonic()
-    p = subprocess.Popen([EXE, "flash", "--port", pico.url, "--lib-dir", str(BOARD_LIB), "--build-dir",
-                          str(build_dir), "--boot-timeout-s", "120", *extra], cwd=ROOT, text=True,
+    dev = [] if "--no-hid-check" in extra else ["--device", device or pico.hid_url]
+    p = subprocess.Popen([EXE, "flash", "--port", pico.url, *dev, "--lib-dir", str(BOARD_LIB), "--build-dir",
+                          str(build_dir), "--boot-timeout-s", str(boot_timeout_s), *extra], cwd=ROOT, text=True,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     lines = []
     for line in p.stdout:
@@ -58,6 +64,22 @@ def mpremote(pico, *args, timeout=60, soft_reset=False):
     """`resume`: no soft reset, which would re-enumerate a running board's USB (docs/hardware.md)."""
     return subprocess.run([tool("mpremote"), "connect", pico.url, *([] if soft_reset else ["resume"]), *args],
                           capture_output=True, text=True, timeout=timeout)
+
+
+def over_hid(pico, out):
+    """Step 7 says the version came over HID from this board's HID interface, and the emulator saw it:
+    a HID client on this board (after its last reset) that sent reports (GET_INFO) and was answered."""
+    m = re.search(r"\[7/7\] boot check over HID \((\S+)\): steadytouch (\S+) on (\S+) answered GET_INFO, the version "
+                  r"flashed; (\d+) telemetry reports", out)
+    assert m, out
+    assert m.group(1) == pico.hid_url and m.group(2) == FW and m.group(3) == "pico-stmisola" and int(m.group(4)) > 0
+    t_end = time.monotonic() + 20  # the emulator logs the client's end a moment after flash closed it
+    while "HID client disconnected after" not in pico.stderr().rsplit("hard reset", 1)[-1] and time.monotonic() < t_end:
+        time.sleep(0.2)
+    since_reset = pico.stderr().rsplit("hard reset", 1)[-1]
+    assert "HID client connected (device 1209:0001)" in since_reset, since_reset[-1500:]
+    counts = re.findall(r"HID client disconnected after (\d+) OUT and (\d+) IN reports", since_reset)
+    assert any(int(o) >= 1 and int(i) >= 1 for o, i in counts), since_reset[-1500:]
 
 
 def resets(pico, kind="watchdog timeout"):
@@ -84,8 +106,8 @@ def test_flash_a_blank_board_boots_and_runs_its_loop(pico, tmp_path):
     assert [s[:5] for _, s in lines if s.startswith("[")] == [f"[{k}/7]" for k in range(1, 8)]
     assert "no steadytouch loop was running" in out and "no error log on the board" in out
     assert "installed 3 files into /lib/usb/device" in out and f"copied {N_FILES} files, 0 unchanged" in out
-    m = re.search(r"boot check: steadytouch (\S+) ran (\d+) frames with no error", out)
-    assert m and m.group(1) == FW and int(m.group(2)) > 0, out
+    over_hid(pico, out)
+    assert "serial REPL" not in out
     assert f"the board runs steadytouch firmware {FW}" in out
     assert resets(pico) == 0 and "Traceback" not in out
 
@@ -131,7 +153,22 @@ def test_flash_again_onto_the_running_board(pico, tmp_path):
     m = re.search(r"stopped steadytouch (\S+) \((\d+) frames\)", out)
     assert m and m.group(1) == FW and int(m.group(2)) > 0, out
     assert "all 3 files up to date" in out and f"copied 0 files, {N_FILES} unchanged" in out
-    assert re.search(rf"boot check: steadytouch {re.escape(FW)} ran [1-9]\d* frames with no error", out), out
+    over_hid(pico, out)
+    assert resets(pico) == 0
+
+
+def test_a_hid_interface_that_cannot_be_reached_is_one_line_with_hints(pico, tmp_path):
+    """The firmware runs but the HID device named is not there (a missing udev rule looks the same):
+    flash waits --boot-timeout-s, asks the serial port why, and names what to check."""
+    wait_until_running(pico)
+    with socket.socket() as s:  # a port nobody serves
+        s.bind(("127.0.0.1", 0))
+        nobody = f"emu+tcp://127.0.0.1:{s.getsockname()[1]}"
+    rc, lines, err = flash(pico, tmp_path / "dev", device=nobody, boot_timeout_s=25)
+    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, text(lines) + err
+    assert re.search(r"the firmware runs \(\d+ frames, seen over the serial REPL on socket://", err), err
+    assert f"its HID interface {nobody} cannot be reached within 25 s" in err
+    assert "udev rule docs/70-steadytouch.rules" in err and "--no-hid-check" in err
     assert resets(pico) == 0
 
 
@@ -151,7 +188,8 @@ def test_a_boot_error_is_logged_without_a_reset_loop_and_flash_shows_and_mends_i
     out = text(lines)
     assert rc == 0, out + err
     assert "[4/7] the board's error log /last_error.txt" in out and "usb-device is not installed" in out
-    assert "installed 1 file into /lib/usb/device" in out and "ran" in out and "with no error" in out
+    assert "installed 1 file into /lib/usb/device" in out
+    over_hid(pico, out)
     p = mpremote(pico, "exec", "import os; print('/last_error.txt' in ['/' + n for n in os.listdir('/')])")
     assert p.stdout.strip() == "False"  # shown once, then cleared
     mpremote(pico, "reset")
@@ -175,10 +213,12 @@ def test_a_board_in_a_watchdog_reset_loop_is_recovered_by_flash(pico, tmp_path):
     while resets(pico) < before + 3 and time.monotonic() < t_end:
         time.sleep(0.5)
     assert resets(pico) >= before + 3, "the broken main.py should reset the board again and again"
-    rc, lines, err = flash(pico, tmp_path / "dev")
+    rc, lines, err = flash(pico, tmp_path / "dev", "--no-hid-check")  # the serial-REPL fallback
     out = text(lines)
     assert rc == 0, out + err
     assert f"copied 1 file, {N_FILES - 1} unchanged" in out and f"the board runs steadytouch firmware {FW}" in out
+    assert re.search(rf"\[7/7\] boot check: steadytouch {re.escape(FW)} ran [1-9]\d* frames with no error; version "
+                     r"read back over the serial REPL, not over HID \(--no-hid-check\)", out), out
     n = resets(pico)
     time.sleep(5)
     assert resets(pico) == n  # the loop is over
