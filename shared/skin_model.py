@@ -11,8 +11,14 @@ nothing is allocated after construction.
 """
 
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def viper(f):
+            return f
 
     def const(x):
         return x
@@ -94,67 +100,76 @@ class SkinModel:
         self.beta_q16 = beta_q16
         self.jumped = 0
 
-    def rp(self, ls, lc, li, lt):
+    @micropython.viper
+    def rp(self, ls: int, lc: int, li: int, lt: int) -> int:
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
-        pulse with log2 I = li, log2 T = lt."""
-        lr = ls - mul_q16(li - _L_1MA, self.beta_q16)  # log2 R(I)
+        pulse with log2 I = li, log2 T = lt. Viper (machine code on the chip): every value
+        is below 2**30, so 32-bit (ARM) and 64-bit words give Python's results."""
+        rs = int(self.rs_ohm)
+        lr = ls - int(mul_q16(li - _L_1MA, int(self.beta_q16)))  # log2 R(I)
         lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
         if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
             lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
             if lrz > _L_R_MAX:
                 return 0x200000
-            z = exp2q(lz + 0xE0000) if lz > -0x1E0000 else 0  # Q.14, < 2**13
+            z = int(exp2q(lz + 0xE0000)) if lz > -0x1E0000 else 0  # Q.14, < 2**13
             v = 16384 - z // 5
             v = 16384 - ((z * v) >> 14) // 4
             v = 16384 - ((z * v) >> 14) // 3
             v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            rz = exp2q(lrz)  # < 2**20
-            return self.rs_ohm + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
+            rz = int(exp2q(lrz))  # < 2**20
+            return rs + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
         if lr > _L_R_MAX:
             return 0x200000
         if lz > _L_Z12:  # charged: exp(-z) < 2**-17
             u = 0x8000
         else:
-            zq = exp2q(lz + 0x100000)  # z in Q.16, < 12 * 2**16
+            zq = int(exp2q(lz + 0x100000))  # z in Q.16, < 12 * 2**16
             lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
-            u = 0x8000 - exp2q(lw + 0xF0000)  # 1 - e^-z in Q.15
-        r = exp2q(lr)
-        return self.rs_ohm + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+            u = 0x8000 - int(exp2q(lw + 0xF0000))  # 1 - e^-z in Q.15
+        r = int(exp2q(lr))
+        return rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
 
-    def g(self, kind, x, lc, p, o):
+    @micropython.viper
+    def g(self, kind: int, x: int, lc: int, p, o) -> int:
         """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
         if kind == _K_ANCHOR:
-            return self.rp(x, lc, p.li, p.lt) - p.rp_ohm
+            return int(self.rp(x, lc, int(p.li), int(p.lt))) - int(p.rp_ohm)
         if kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-            ls = o.ls + mul_q16(x, self.beta_q16 - 0x10000)
-            return self.rp(ls, self.lc + x, p.li, p.lt) - p.rp_ohm
+            ls = int(o.ls) + int(mul_q16(x, int(self.beta_q16) - 0x10000))
+            return int(self.rp(ls, int(self.lc) + x, int(p.li), int(p.lt))) - int(p.rp_ohm)
         if kind == _K_LAW:  # 1/16 pC
-            r = self.rp(self.ls, self.lc, self.lme - x, (x << 1) - self.lme)
+            lme = int(self.lme)
+            r = int(self.rp(int(self.ls), int(self.lc), lme - x, (x << 1) - lme))
             if r > _RP_MAX_OHM:
                 r = _RP_MAX_OHM
-            return self.c._line(r) - exp2q(x + 0x40000)
+            return int(self.c._line(r)) - int(exp2q(x + 0x40000))
         if kind == _K_CEIL:  # 1/16 pC
-            r = self.rp(self.ls, self.lc, x, self.ltmax)
+            ltmax = int(self.ltmax)
+            r = int(self.rp(int(self.ls), int(self.lc), x, ltmax))
             if r > _RP_MAX_OHM:
                 r = _RP_MAX_OHM
-            return self.c._line(r) - exp2q(x + self.ltmax + 0x40000)
+            return int(self.c._line(r)) - int(exp2q(x + ltmax + 0x40000))
         # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
-        r = exp2q(x)
-        y = x - log2q(r - p.rp_ohm + self.rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
+        r = int(exp2q(x))
+        y = x - int(log2q(r - int(p.rp_ohm) + int(self.rs_ohm)))  # log2 (R / (R - Rp + Rs)) = z / ln 2
         if y <= 0:
             return NOROOT
-        lc = p.lt - x + _L_1E6 - (log2q(y) - 0x100000 + _L_LN2)
-        ls = x + mul_q16(p.li - _L_1MA, self.beta_q16)
+        lc = int(p.lt) - x + _L_1E6 - (int(log2q(y)) - 0x100000 + _L_LN2)
+        ls = x + int(mul_q16(int(p.li) - _L_1MA, int(self.beta_q16)))
         self.lc_two = lc
-        return self.rp(ls, lc, o.li, o.lt) - o.rp_ohm
+        return int(self.rp(ls, lc, int(o.li), int(o.lt))) - int(o.rp_ohm)
 
-    def root(self, kind, a, b, lc, p, o):
+    @micropython.viper
+    def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
         """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
         to 1/2**16; NOROOT if the ends have one sign or g fails."""
-        fa = self.g(kind, a, lc, p, o)
-        fb = self.g(kind, b, lc, p, o)
-        if fa == NOROOT or fb == NOROOT or (fa > 0) == (fb > 0):
-            return NOROOT if fa != 0 and fb != 0 else (a if fa == 0 else b)
+        fa = int(self.g(kind, a, lc, p, o))
+        fb = int(self.g(kind, b, lc, p, o))
+        if fa == NOROOT or fb == NOROOT or (fa > 0 and fb > 0) or (fa <= 0 and fb <= 0):
+            if fa != 0 and fb != 0:
+                return NOROOT
+            return a if fa == 0 else b
         side = 0
         n = 0
         while b - a > 1 and n < 40:
@@ -166,19 +181,19 @@ class SkinModel:
                 den >>= 1
                 num >>= 1
             if den >= 256 and w <= 0x40000:
-                x = a + muldiv(num, w, den, 0, _MQ_CAP)
+                x = a + int(muldiv(num, w, den, 0, _MQ_CAP))
             else:
                 x = a + (w >> 1)
             if x <= a:
                 x = a + 1
             elif x >= b:
                 x = b - 1
-            fx = self.g(kind, x, lc, p, o)
+            fx = int(self.g(kind, x, lc, p, o))
             if fx == NOROOT:
                 return NOROOT
             if fx == 0:
                 return x
-            if (fx > 0) == (fa > 0):  # Illinois: halve the end kept twice running
+            if (fx > 0 and fa > 0) or (fx <= 0 and fa <= 0):  # Illinois: halve the end kept twice running
                 a = x
                 fa = fx
                 if side < 0:
