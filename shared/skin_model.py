@@ -10,10 +10,12 @@ ls = log2 S, lc = log2 Cp, lq = log2 Q). Every intermediate is below 2**30 and
 nothing is allocated after construction.
 """
 
+from array import array
+
 try:
     import micropython
     from micropython import const
-except ImportError:  # CPython: the decorator does nothing
+except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the array itself
 
     class micropython:  # noqa: N801 (stands in for the module's decorator)
         @staticmethod
@@ -22,6 +24,9 @@ except ImportError:  # CPython: the decorator does nothing
 
     def const(x):
         return x
+
+    def ptr32(a):
+        return a
 
 
 from fixmath import exp2q, log2q, mul_q16, muldiv
@@ -57,6 +62,119 @@ _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
 _K_CEIL = const(3)  # x = log2 I at T = t_max: the line L(Rp) - I t_max
 _K_TWO = const(4)  # x = log2 R(I) at pulse p, Cp from p's Rp: the model reads pulse o's Rp
 
+# SkinModel.v (an array('i')): what _g reads, copied there by SkinModel.root for its kind
+_V_RS = const(0)  # Rs (ohm)
+_V_BETA = const(1)  # beta, Q.16
+_V_LS = const(2)  # log2 S (_K_LAW, _K_CEIL)
+_V_LC = const(3)  # log2 Cp (_K_PEEL, _K_LAW, _K_CEIL)
+_V_LME = const(4)  # log2 mE (_K_LAW)
+_V_LTMAX = const(5)  # log2 t_max (_K_CEIL)
+_V_PLI = const(6)  # pulse p: log2 I, log2 T, Rp
+_V_PLT = const(7)
+_V_PRP = const(8)
+_V_OLI = const(9)  # pulse o: log2 I, log2 T, Rp, log2 S
+_V_OLT = const(10)
+_V_ORP = const(11)
+_V_OLS = const(12)
+_V_LCTWO = const(13)  # log2 Cp found by the last _K_TWO evaluation
+_V_YQ4 = const(14)  # the controller's Eq. 3 (_K_LAW, _K_CEIL): y* (1/16 pC), mQ's numerator (pC),
+_V_MQN = const(15)  # x* (ohm), mQ's denominator (ohm), q_max - y* (1/16 pC)
+_V_XS = const(16)
+_V_MQD = const(17)
+_V_LCAP = const(18)
+_V_N = const(19)
+
+
+@micropython.viper
+def _g(vv, kind: int, x: int, lc: int) -> int:
+    """SkinModel.g on the values in vv (SkinModel.v): one machine-code function (viper)
+    with the model's Rp inline, so a root search costs one call per evaluation. Every
+    value is below 2**30, so 32-bit (ARM) and 64-bit words give Python's results."""
+    v = ptr32(vv)
+    beta = v[_V_BETA]
+    if kind == _K_ANCHOR:
+        ls = x
+        li = v[_V_PLI]
+        lt = v[_V_PLT]
+    elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+        b = beta - 0x10000  # mul_q16(x, b), inline
+        a = -x if x < 0 else x
+        c = -b if b < 0 else b
+        y = (((a >> 10) * c) >> 6) + (((a & 0x3FF) * c) >> 16)
+        if x < 0:
+            y = y if b < 0 else -y
+        elif b < 0:
+            y = -y
+        ls = v[_V_OLS] + y
+        lc = v[_V_LC] + x
+        li = v[_V_PLI]
+        lt = v[_V_PLT]
+    elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
+        ls = v[_V_LS]
+        lc = v[_V_LC]
+        li = v[_V_LME] - x
+        lt = (x << 1) - v[_V_LME]
+    elif kind == _K_CEIL:  # x = log2 I at t_max
+        ls = v[_V_LS]
+        lc = v[_V_LC]
+        li = x
+        lt = v[_V_LTMAX]
+    else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
+        r = int(exp2q(x))
+        y = x - int(log2q(r - v[_V_PRP] + v[_V_RS]))  # log2 (R / (R - Rp + Rs)) = z / ln 2
+        if y <= 0:
+            return NOROOT
+        lc = v[_V_PLT] - x + _L_1E6 - (int(log2q(y)) - 0x100000 + _L_LN2)
+        a = v[_V_PLI] - _L_1MA  # mul_q16(a, beta), inline (beta >= 0)
+        c = -a if a < 0 else a
+        y = (((c >> 10) * beta) >> 6) + (((c & 0x3FF) * beta) >> 16)
+        ls = x + (-y if a < 0 else y)
+        v[_V_LCTWO] = lc
+        li = v[_V_OLI]
+        lt = v[_V_OLT]
+    # the model's Rp (SkinModel.rp) for ls, lc, li, lt
+    rs = v[_V_RS]
+    a = li - _L_1MA  # mul_q16(a, beta), inline (beta >= 0)
+    c = -a if a < 0 else a
+    y = (((c >> 10) * beta) >> 6) + (((c & 0x3FF) * beta) >> 16)
+    lr = ls - (-y if a < 0 else y)  # log2 R(I)
+    lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+    if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+        lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
+        if lrz > _L_R_MAX:
+            rp = 0x200000
+        else:
+            z = int(exp2q(lz + 0xE0000)) if lz > -0x1E0000 else 0  # Q.14, < 2**13
+            u = 16384 - z // 5
+            u = 16384 - ((z * u) >> 14) // 4
+            u = 16384 - ((z * u) >> 14) // 3
+            u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
+            r = int(exp2q(lrz))  # < 2**20
+            rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
+    elif lr > _L_R_MAX:
+        rp = 0x200000
+    else:
+        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+            u = 0x8000
+        else:
+            z = int(exp2q(lz + 0x100000))  # z in Q.16, < 12 * 2**16
+            lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
+            u = 0x8000 - int(exp2q(lw + 0xF0000))  # 1 - e^-z in Q.15
+        r = int(exp2q(lr))
+        rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+    if kind == _K_ANCHOR or kind == _K_PEEL:
+        return rp - v[_V_PRP]
+    if kind == _K_TWO:
+        return rp - v[_V_ORP]
+    # _K_LAW, _K_CEIL: the line's charge L(Rp) less the pulse's (1/16 pC)
+    if rp > _RP_MAX_OHM:
+        rp = _RP_MAX_OHM
+    if kind == _K_LAW:
+        q = int(exp2q(x + 0x40000))
+    else:
+        q = int(exp2q(x + v[_V_LTMAX] + 0x40000))
+    return v[_V_YQ4] + int(muldiv(v[_V_MQN], rp - v[_V_XS], v[_V_MQD], 4, v[_V_LCAP])) - q
+
 
 class LogPulse:
     """A measured pulse as the model reads it."""
@@ -87,6 +205,7 @@ class SkinModel:
         self.before = LogPulse()  # the pulse measured before it
         self.jumped = 0  # 1: the pulse just measured was a model jump
         self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
+        self.v = array("i", bytes(4 * _V_N))  # what _g reads (_V_*)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -98,74 +217,64 @@ class SkinModel:
             self.lc = self.lc_set
         self.rs_ohm = rs_ohm
         self.beta_q16 = beta_q16
+        self.v[_V_RS] = rs_ohm
+        self.v[_V_BETA] = beta_q16
         self.jumped = 0
 
-    @micropython.viper
-    def rp(self, ls: int, lc: int, li: int, lt: int) -> int:
+    def rp(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
-        pulse with log2 I = li, log2 T = lt. Viper (machine code on the chip): every value
-        is below 2**30, so 32-bit (ARM) and 64-bit words give Python's results."""
-        rs = int(self.rs_ohm)
-        lr = ls - int(mul_q16(li - _L_1MA, int(self.beta_q16)))  # log2 R(I)
-        lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
-        if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
-            lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
-            if lrz > _L_R_MAX:
-                return 0x200000
-            z = int(exp2q(lz + 0xE0000)) if lz > -0x1E0000 else 0  # Q.14, < 2**13
-            v = 16384 - z // 5
-            v = 16384 - ((z * v) >> 14) // 4
-            v = 16384 - ((z * v) >> 14) // 3
-            v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            rz = int(exp2q(lrz))  # < 2**20
-            return rs + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
-        if lr > _L_R_MAX:
-            return 0x200000
-        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
-            u = 0x8000
-        else:
-            zq = int(exp2q(lz + 0x100000))  # z in Q.16, < 12 * 2**16
-            lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
-            u = 0x8000 - int(exp2q(lw + 0xF0000))  # 1 - e^-z in Q.15
-        r = int(exp2q(lr))
-        return rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+        pulse with log2 I = li, log2 T = lt (_g's model, read as an anchor on Rp 0)."""
+        v = self.v
+        v[_V_PLI] = li
+        v[_V_PLT] = lt
+        v[_V_PRP] = 0
+        return _g(v, _K_ANCHOR, ls, lc)
 
     @micropython.viper
-    def g(self, kind: int, x: int, lc: int, p, o) -> int:
+    def _load(self, kind: int, p, o):
+        """Copy into self.v what _g reads for this kind (pulses p, o; the law's line)."""
+        v = ptr32(self.v)
+        if kind == _K_LAW or kind == _K_CEIL:
+            v[_V_LS] = int(self.ls)
+            v[_V_LC] = int(self.lc)
+            v[_V_LME] = int(self.lme)
+            v[_V_LTMAX] = int(self.ltmax)
+            c = self.c
+            v[_V_YQ4] = int(c._y_q4)
+            v[_V_MQN] = int(c._mq_num_pc)
+            v[_V_XS] = int(c.x_star_ohm)
+            v[_V_MQD] = int(c._mq_den_ohm)
+            v[_V_LCAP] = int(c._line_cap_q4)
+            return
+        v[_V_PLI] = int(p.li)
+        v[_V_PLT] = int(p.lt)
+        v[_V_PRP] = int(p.rp_ohm)
+        if kind == _K_PEEL:
+            v[_V_LC] = int(self.lc)
+            v[_V_OLS] = int(o.ls)
+        elif kind == _K_TWO:
+            v[_V_OLI] = int(o.li)
+            v[_V_OLT] = int(o.lt)
+            v[_V_ORP] = int(o.rp_ohm)
+
+    def g(self, kind, x, lc, p, o):
         """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
-        if kind == _K_ANCHOR:
-            return int(self.rp(x, lc, int(p.li), int(p.lt))) - int(p.rp_ohm)
-        if kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-            ls = int(o.ls) + int(mul_q16(x, int(self.beta_q16) - 0x10000))
-            return int(self.rp(ls, int(self.lc) + x, int(p.li), int(p.lt))) - int(p.rp_ohm)
-        if kind == _K_LAW:  # 1/16 pC
-            lme = int(self.lme)
-            r = int(self.rp(int(self.ls), int(self.lc), lme - x, (x << 1) - lme))
-            if r > _RP_MAX_OHM:
-                r = _RP_MAX_OHM
-            return int(self.c._line(r)) - int(exp2q(x + 0x40000))
-        if kind == _K_CEIL:  # 1/16 pC
-            ltmax = int(self.ltmax)
-            r = int(self.rp(int(self.ls), int(self.lc), x, ltmax))
-            if r > _RP_MAX_OHM:
-                r = _RP_MAX_OHM
-            return int(self.c._line(r)) - int(exp2q(x + ltmax + 0x40000))
-        # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
-        r = int(exp2q(x))
-        y = x - int(log2q(r - int(p.rp_ohm) + int(self.rs_ohm)))  # log2 (R / (R - Rp + Rs)) = z / ln 2
-        if y <= 0:
-            return NOROOT
-        lc = int(p.lt) - x + _L_1E6 - (int(log2q(y)) - 0x100000 + _L_LN2)
-        ls = x + int(mul_q16(int(p.li) - _L_1MA, int(self.beta_q16)))
-        self.lc_two = lc
-        return int(self.rp(ls, lc, int(o.li), int(o.lt))) - int(o.rp_ohm)
+        self._load(kind, p, o)
+        r = _g(self.v, kind, x, lc)
+        if kind == _K_TWO:
+            self.lc_two = self.v[_V_LCTWO]
+        return r
 
     @micropython.viper
     def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
         """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
-        to 1/2**16; NOROOT if the ends have one sign or g fails."""
-        fa = int(self.g(kind, a, lc, p, o))
-        fb = int(self.g(kind, b, lc, p, o))
+        to 1/2**16; NOROOT if the ends have one sign or g fails. Viper: one call of _g
+        per evaluation; the interpolation floor(num * w / den) in two 9-bit halves of w
+        (num <= den < 2**18, w <= 2**18: every product < 2**28)."""
+        self._load(kind, p, o)
+        vv = self.v
+        fa = int(_g(vv, kind, a, lc))
+        fb = int(_g(vv, kind, b, lc))
         if fa == NOROOT or fb == NOROOT or (fa > 0 and fb > 0) or (fa <= 0 and fb <= 0):
             if fa != 0 and fb != 0:
                 return NOROOT
@@ -181,14 +290,17 @@ class SkinModel:
                 den >>= 1
                 num >>= 1
             if den >= 256 and w <= 0x40000:
-                x = a + int(muldiv(num, w, den, 0, _MQ_CAP))
+                t = num * (w >> 9)
+                q = t // den
+                t = ((t - q * den) << 9) + num * (w & 0x1FF)
+                x = a + (q << 9) + t // den
             else:
                 x = a + (w >> 1)
             if x <= a:
                 x = a + 1
             elif x >= b:
                 x = b - 1
-            fx = int(self.g(kind, x, lc, p, o))
+            fx = int(_g(vv, kind, x, lc))
             if fx == NOROOT:
                 return NOROOT
             if fx == 0:
