@@ -29,7 +29,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import exp2q, log2q, mul_q16, muldiv
+from fixmath import _EXP_TAB, exp2q, log2q, mul_q16, muldiv
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -91,6 +91,7 @@ def _g(vv, kind: int, x: int, lc: int) -> int:
     with the model's Rp inline, so a root search costs one call per evaluation. Every
     value is below 2**30, so 32-bit (ARM) and 64-bit words give Python's results."""
     v = ptr32(vv)
+    e = ptr32(_EXP_TAB)  # fixmath.exp2q's table: its interpolation is inline below
     beta = v[_V_BETA]
     if kind == _K_ANCHOR:
         ls = x
@@ -144,12 +145,40 @@ def _g(vv, kind: int, x: int, lc: int) -> int:
         if lrz > _L_R_MAX:
             rp = 0x200000
         else:
-            z = int(exp2q(lz + 0xE0000)) if lz > -0x1E0000 else 0  # Q.14, < 2**13
+            z = 0
+            if lz > -0x1E0000:  # z in Q.14, < 2**13
+                n = lz + 0xE0000  # z = exp2q(n), inline
+                k = (n & 0xFFFF) >> 10
+                eu = n & 0x3FF
+                n = n >> 16
+                ea = e[k]
+                eb = e[k + 1]
+                w = eu >> 2
+                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                if n >= 22:
+                    z = m << (n - 22)
+                elif n < -2:
+                    z = 0
+                else:
+                    z = (m + (1 << (21 - n))) >> (22 - n)
             u = 16384 - z // 5
             u = 16384 - ((z * u) >> 14) // 4
             u = 16384 - ((z * u) >> 14) // 3
             u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            r = int(exp2q(lrz))  # < 2**20
+            n = lrz  # r = exp2q(n), inline
+            k = (n & 0xFFFF) >> 10
+            eu = n & 0x3FF
+            n = n >> 16
+            ea = e[k]
+            eb = e[k + 1]
+            w = eu >> 2
+            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if n >= 22:
+                r = m << (n - 22)
+            elif n < -2:
+                r = 0
+            else:
+                r = (m + (1 << (21 - n))) >> (22 - n)
             rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
     elif lr > _L_R_MAX:
         rp = 0x200000
@@ -157,10 +186,50 @@ def _g(vv, kind: int, x: int, lc: int) -> int:
         if lz > _L_Z12:  # charged: exp(-z) < 2**-17
             u = 0x8000
         else:
-            z = int(exp2q(lz + 0x100000))  # z in Q.16, < 12 * 2**16
+            n = lz + 0x100000  # z = exp2q(n), inline
+            k = (n & 0xFFFF) >> 10
+            eu = n & 0x3FF
+            n = n >> 16
+            ea = e[k]
+            eb = e[k + 1]
+            w = eu >> 2
+            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if n >= 22:
+                z = m << (n - 22)
+            elif n < -2:
+                z = 0
+            else:
+                z = (m + (1 << (21 - n))) >> (22 - n)
             lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
-            u = 0x8000 - int(exp2q(lw + 0xF0000))  # 1 - e^-z in Q.15
-        r = int(exp2q(lr))
+            n = lw + 0xF0000  # u = exp2q(n), inline
+            k = (n & 0xFFFF) >> 10
+            eu = n & 0x3FF
+            n = n >> 16
+            ea = e[k]
+            eb = e[k + 1]
+            w = eu >> 2
+            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if n >= 22:
+                u = m << (n - 22)
+            elif n < -2:
+                u = 0
+            else:
+                u = (m + (1 << (21 - n))) >> (22 - n)
+            u = 0x8000 - u  # 1 - e^-z in Q.15
+        n = lr  # r = exp2q(n), inline
+        k = (n & 0xFFFF) >> 10
+        eu = n & 0x3FF
+        n = n >> 16
+        ea = e[k]
+        eb = e[k + 1]
+        w = eu >> 2
+        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+        if n >= 22:
+            r = m << (n - 22)
+        elif n < -2:
+            r = 0
+        else:
+            r = (m + (1 << (21 - n))) >> (22 - n)
         rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
     if kind == _K_ANCHOR or kind == _K_PEEL:
         return rp - v[_V_PRP]
@@ -169,10 +238,20 @@ def _g(vv, kind: int, x: int, lc: int) -> int:
     # _K_LAW, _K_CEIL: the line's charge L(Rp) less the pulse's (1/16 pC)
     if rp > _RP_MAX_OHM:
         rp = _RP_MAX_OHM
-    if kind == _K_LAW:
-        q = int(exp2q(x + 0x40000))
+    n = x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000
+    k = (n & 0xFFFF) >> 10
+    eu = n & 0x3FF
+    n = n >> 16
+    ea = e[k]
+    eb = e[k + 1]
+    w = eu >> 2
+    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+    if n >= 22:
+        q = m << (n - 22)
+    elif n < -2:
+        q = 0
     else:
-        q = int(exp2q(x + v[_V_LTMAX] + 0x40000))
+        q = (m + (1 << (21 - n))) >> (22 - n)
     return v[_V_YQ4] + int(muldiv(v[_V_MQN], rp - v[_V_XS], v[_V_MQD], 4, v[_V_LCAP])) - q
 
 
