@@ -18,8 +18,14 @@ Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
 """
 
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def native(f):
+            return f
 
     def const(x):
         return x
@@ -83,6 +89,7 @@ def _check(name, v, lo, hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
+@micropython.native
 def _t_from_qf(qf, i0, t0):
     """Eq. 4's T = Q^2 / mE, rounded, with Q = qf / 16 pC, mE = i0^2 t0; _T_SAT if huge.
 
@@ -262,6 +269,7 @@ class Controller:
         self.drift_ohm = 0
         self.skin.jumped = 0
 
+    @micropython.native
     def update(self, rp_ohm):
         """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status."""
         if not self.calibrated:
@@ -303,10 +311,12 @@ class Controller:
         b.clean = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
+    @micropython.native
     def _line(self, rp_ohm):
         """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
         return self._y_q4 + muldiv(self._mq_num_pc, rp_ohm - self.x_star_ohm, self._mq_den_ohm, 4, self._line_cap_q4)
 
+    @micropython.native
     def _measured(self, i_ua, t_us, status):
         """Put back the measured pulse (_from_q reads it) before another proposal."""
         self.i_ua = i_ua
@@ -341,6 +351,7 @@ class Controller:
         self.status = st
         return st
 
+    @micropython.native
     def _from_q(self, qf):
         """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0)."""
         st = ST_OK

@@ -22,6 +22,8 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         def viper(f):
             return f
 
+        native = viper
+
     def const(x):
         return x
 
@@ -62,7 +64,7 @@ _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
 _K_CEIL = const(3)  # x = log2 I at T = t_max: the line L(Rp) - I t_max
 _K_TWO = const(4)  # x = log2 R(I) at pulse p, Cp from p's Rp: the model reads pulse o's Rp
 
-# SkinModel.v (an array('i')): what _g reads, copied there by SkinModel.root for its kind
+# SkinModel.v (an array('i')): what _root reads, copied there by SkinModel.root for its kind
 _V_RS = const(0)  # Rs (ohm)
 _V_BETA = const(1)  # beta, Q.16
 _V_LS = const(2)  # log2 S (_K_LAW, _K_CEIL)
@@ -86,68 +88,155 @@ _V_N = const(19)
 
 
 @micropython.viper
-def _g(vv, kind: int, x: int, lc: int) -> int:
-    """SkinModel.g on the values in vv (SkinModel.v): one machine-code function (viper)
-    with the model's Rp inline, so a root search costs one call per evaluation. Every
-    value is below 2**30, so 32-bit (ARM) and 64-bit words give Python's results."""
+def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
+    """SkinModel.root on the values in vv (SkinModel.v; _load copies them there): x in
+    [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16;
+    NOROOT if the ends have one sign or g fails. With b < a: g(kind, a, lc0) itself.
+    One machine-code function (viper) with the model's Rp and fixmath.exp2q's
+    interpolation inline: no call per evaluation. Every value is below 2**30, so
+    32-bit (ARM) and 64-bit words give Python's results; the interpolation
+    floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
     v = ptr32(vv)
-    e = ptr32(_EXP_TAB)  # fixmath.exp2q's table: its interpolation is inline below
+    e = ptr32(_EXP_TAB)
     beta = v[_V_BETA]
-    if kind == _K_ANCHOR:
-        ls = x
-        li = v[_V_PLI]
-        lt = v[_V_PLT]
-    elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-        b = beta - 0x10000  # mul_q16(x, b), inline
-        a = -x if x < 0 else x
-        c = -b if b < 0 else b
-        y = (((a >> 10) * c) >> 6) + (((a & 0x3FF) * c) >> 16)
-        if x < 0:
-            y = y if b < 0 else -y
-        elif b < 0:
-            y = -y
-        ls = v[_V_OLS] + y
-        lc = v[_V_LC] + x
-        li = v[_V_PLI]
-        lt = v[_V_PLT]
-    elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
-        ls = v[_V_LS]
-        lc = v[_V_LC]
-        li = v[_V_LME] - x
-        lt = (x << 1) - v[_V_LME]
-    elif kind == _K_CEIL:  # x = log2 I at t_max
-        ls = v[_V_LS]
-        lc = v[_V_LC]
-        li = x
-        lt = v[_V_LTMAX]
-    else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
-        r = int(exp2q(x))
-        y = x - int(log2q(r - v[_V_PRP] + v[_V_RS]))  # log2 (R / (R - Rp + Rs)) = z / ln 2
-        if y <= 0:
-            return NOROOT
-        lc = v[_V_PLT] - x + _L_1E6 - (int(log2q(y)) - 0x100000 + _L_LN2)
-        a = v[_V_PLI] - _L_1MA  # mul_q16(a, beta), inline (beta >= 0)
-        c = -a if a < 0 else a
-        y = (((c >> 10) * beta) >> 6) + (((c & 0x3FF) * beta) >> 16)
-        ls = x + (-y if a < 0 else y)
-        v[_V_LCTWO] = lc
-        li = v[_V_OLI]
-        lt = v[_V_OLT]
-    # the model's Rp (SkinModel.rp) for ls, lc, li, lt
     rs = v[_V_RS]
-    a = li - _L_1MA  # mul_q16(a, beta), inline (beta >= 0)
-    c = -a if a < 0 else a
-    y = (((c >> 10) * beta) >> 6) + (((c & 0x3FF) * beta) >> 16)
-    lr = ls - (-y if a < 0 else y)  # log2 R(I)
-    lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
-    if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
-        lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
-        if lrz > _L_R_MAX:
-            rp = 0x200000
-        else:
-            z = 0
-            if lz > -0x1E0000:  # z in Q.14, < 2**13
-                n = lz + 0xE0000  # z = exp2q(n), inline
+    only = 1 if b < a else 0
+    phase = 0  # 0: evaluating at a, 1: at b, 2: inside
+    fa = 0
+    fb = 0
+    side = 0
+    it = 0  # interpolation steps
+    x = a
+    while True:
+        lc = lc0
+        ok = 1
+        if kind == _K_ANCHOR:
+            ls = x
+            li = v[_V_PLI]
+            lt = v[_V_PLT]
+        elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+            mb = beta - 0x10000  # mul_q16(x, mb), inline
+            ma = -x if x < 0 else x
+            mc = -mb if mb < 0 else mb
+            my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+            if x < 0:
+                my = my if mb < 0 else -my
+            elif mb < 0:
+                my = -my
+            ls = v[_V_OLS] + my
+            lc = v[_V_LC] + x
+            li = v[_V_PLI]
+            lt = v[_V_PLT]
+        elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
+            ls = v[_V_LS]
+            lc = v[_V_LC]
+            li = v[_V_LME] - x
+            lt = (x << 1) - v[_V_LME]
+        elif kind == _K_CEIL:  # x = log2 I at t_max
+            ls = v[_V_LS]
+            lc = v[_V_LC]
+            li = x
+            lt = v[_V_LTMAX]
+        else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
+            r = int(exp2q(x))
+            my = x - int(log2q(r - v[_V_PRP] + v[_V_RS]))  # log2 (R / (R - Rp + Rs)) = z / ln 2
+            ls = 0
+            li = v[_V_OLI]
+            lt = v[_V_OLT]
+            if my <= 0:
+                ok = 0
+            else:
+                lc = v[_V_PLT] - x + _L_1E6 - (int(log2q(my)) - 0x100000 + _L_LN2)
+                ma = v[_V_PLI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+                mc = -ma if ma < 0 else ma
+                my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+                ls = x + (-my if ma < 0 else my)
+                v[_V_LCTWO] = lc
+        fx = NOROOT
+        if ok:
+            # the model's Rp (SkinModel.rp) for ls, lc, li, lt
+            ma = li - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+            mc = -ma if ma < 0 else ma
+            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+            lr = ls - (-my if ma < 0 else my)  # log2 R(I)
+            lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+            if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+                lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
+                if lrz > _L_R_MAX:
+                    rp = 0x200000
+                else:
+                    z = 0
+                    if lz > -0x1E0000:  # z in Q.14, < 2**13
+                        n = lz + 0xE0000  # z = exp2q(n), inline
+                        k = (n & 0xFFFF) >> 10
+                        eu = n & 0x3FF
+                        n = n >> 16
+                        ea = e[k]
+                        eb = e[k + 1]
+                        w = eu >> 2
+                        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                        if n >= 22:
+                            z = m << (n - 22)
+                        elif n < -2:
+                            z = 0
+                        else:
+                            z = (m + (1 << (21 - n))) >> (22 - n)
+                    u = 16384 - z // 5
+                    u = 16384 - ((z * u) >> 14) // 4
+                    u = 16384 - ((z * u) >> 14) // 3
+                    u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
+                    n = lrz  # r = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        r = m << (n - 22)
+                    elif n < -2:
+                        r = 0
+                    else:
+                        r = (m + (1 << (21 - n))) >> (22 - n)
+                    rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
+            elif lr > _L_R_MAX:
+                rp = 0x200000
+            else:
+                if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+                    u = 0x8000
+                else:
+                    n = lz + 0x100000  # z = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        z = m << (n - 22)
+                    elif n < -2:
+                        z = 0
+                    else:
+                        z = (m + (1 << (21 - n))) >> (22 - n)
+                    lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
+                    n = lw + 0xF0000  # u = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        u = m << (n - 22)
+                    elif n < -2:
+                        u = 0
+                    else:
+                        u = (m + (1 << (21 - n))) >> (22 - n)
+                    u = 0x8000 - u  # 1 - e^-z in Q.15
+                n = lr  # r = exp2q(n), inline
                 k = (n & 0xFFFF) >> 10
                 eu = n & 0x3FF
                 n = n >> 16
@@ -156,103 +245,89 @@ def _g(vv, kind: int, x: int, lc: int) -> int:
                 w = eu >> 2
                 m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
                 if n >= 22:
-                    z = m << (n - 22)
+                    r = m << (n - 22)
                 elif n < -2:
-                    z = 0
+                    r = 0
                 else:
-                    z = (m + (1 << (21 - n))) >> (22 - n)
-            u = 16384 - z // 5
-            u = 16384 - ((z * u) >> 14) // 4
-            u = 16384 - ((z * u) >> 14) // 3
-            u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            n = lrz  # r = exp2q(n), inline
-            k = (n & 0xFFFF) >> 10
-            eu = n & 0x3FF
-            n = n >> 16
-            ea = e[k]
-            eb = e[k + 1]
-            w = eu >> 2
-            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-            if n >= 22:
-                r = m << (n - 22)
-            elif n < -2:
-                r = 0
+                    r = (m + (1 << (21 - n))) >> (22 - n)
+                rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+            if kind == _K_ANCHOR or kind == _K_PEEL:
+                fx = rp - v[_V_PRP]
+            elif kind == _K_TWO:
+                fx = rp - v[_V_ORP]
             else:
-                r = (m + (1 << (21 - n))) >> (22 - n)
-            rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
-    elif lr > _L_R_MAX:
-        rp = 0x200000
-    else:
-        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
-            u = 0x8000
+                # _K_LAW, _K_CEIL: the line's charge L(Rp) less the pulse's (1/16 pC)
+                if rp > _RP_MAX_OHM:
+                    rp = _RP_MAX_OHM
+                n = x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000
+                k = (n & 0xFFFF) >> 10
+                eu = n & 0x3FF
+                n = n >> 16
+                ea = e[k]
+                eb = e[k + 1]
+                w = eu >> 2
+                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                if n >= 22:
+                    q = m << (n - 22)
+                elif n < -2:
+                    q = 0
+                else:
+                    q = (m + (1 << (21 - n))) >> (22 - n)
+                fx = v[_V_YQ4] + int(muldiv(v[_V_MQN], rp - v[_V_XS], v[_V_MQD], 4, v[_V_LCAP])) - q
+        if only:
+            return fx
+        if phase == 0:
+            fa = fx
+            x = b
+            phase = 1
+            continue
+        if phase == 1:
+            fb = fx
+            phase = 2
+            if fa == NOROOT or fb == NOROOT or (fa > 0 and fb > 0) or (fa <= 0 and fb <= 0):
+                if fa != 0 and fb != 0:
+                    return NOROOT
+                return a if fa == 0 else b
         else:
-            n = lz + 0x100000  # z = exp2q(n), inline
-            k = (n & 0xFFFF) >> 10
-            eu = n & 0x3FF
-            n = n >> 16
-            ea = e[k]
-            eb = e[k + 1]
-            w = eu >> 2
-            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-            if n >= 22:
-                z = m << (n - 22)
-            elif n < -2:
-                z = 0
+            if fx == NOROOT:
+                return NOROOT
+            if fx == 0:
+                return x
+            if (fx > 0 and fa > 0) or (fx <= 0 and fa <= 0):  # Illinois: halve the end kept twice running
+                a = x
+                fa = fx
+                if side < 0:
+                    fb = fb >> 1 if fb > 1 or fb < -1 else fb
+                side = -1
             else:
-                z = (m + (1 << (21 - n))) >> (22 - n)
-            lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
-            n = lw + 0xF0000  # u = exp2q(n), inline
-            k = (n & 0xFFFF) >> 10
-            eu = n & 0x3FF
-            n = n >> 16
-            ea = e[k]
-            eb = e[k + 1]
-            w = eu >> 2
-            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-            if n >= 22:
-                u = m << (n - 22)
-            elif n < -2:
-                u = 0
-            else:
-                u = (m + (1 << (21 - n))) >> (22 - n)
-            u = 0x8000 - u  # 1 - e^-z in Q.15
-        n = lr  # r = exp2q(n), inline
-        k = (n & 0xFFFF) >> 10
-        eu = n & 0x3FF
-        n = n >> 16
-        ea = e[k]
-        eb = e[k + 1]
-        w = eu >> 2
-        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-        if n >= 22:
-            r = m << (n - 22)
-        elif n < -2:
-            r = 0
+                b = x
+                fb = fx
+                if side > 0:
+                    fa = fa >> 1 if fa > 1 or fa < -1 else fa
+                side = 1
+        if b - a <= 1 or it >= 40:
+            break
+        it += 1
+        w = b - a
+        num = fa if fa > 0 else -fa
+        den = num + (fb if fb > 0 else -fb)
+        while den >= 0x40000:
+            den >>= 1
+            num >>= 1
+        if den >= 256 and w <= 0x40000:
+            t = num * (w >> 9)
+            q = t // den
+            t = ((t - q * den) << 9) + num * (w & 0x1FF)
+            x = a + (q << 9) + t // den
         else:
-            r = (m + (1 << (21 - n))) >> (22 - n)
-        rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
-    if kind == _K_ANCHOR or kind == _K_PEEL:
-        return rp - v[_V_PRP]
-    if kind == _K_TWO:
-        return rp - v[_V_ORP]
-    # _K_LAW, _K_CEIL: the line's charge L(Rp) less the pulse's (1/16 pC)
-    if rp > _RP_MAX_OHM:
-        rp = _RP_MAX_OHM
-    n = x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000
-    k = (n & 0xFFFF) >> 10
-    eu = n & 0x3FF
-    n = n >> 16
-    ea = e[k]
-    eb = e[k + 1]
-    w = eu >> 2
-    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-    if n >= 22:
-        q = m << (n - 22)
-    elif n < -2:
-        q = 0
-    else:
-        q = (m + (1 << (21 - n))) >> (22 - n)
-    return v[_V_YQ4] + int(muldiv(v[_V_MQN], rp - v[_V_XS], v[_V_MQD], 4, v[_V_LCAP])) - q
+            x = a + (w >> 1)
+        if x <= a:
+            x = a + 1
+        elif x >= b:
+            x = b - 1
+    if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+        return a
+    return b
 
 
 class LogPulse:
@@ -284,7 +359,7 @@ class SkinModel:
         self.before = LogPulse()  # the pulse measured before it
         self.jumped = 0  # 1: the pulse just measured was a model jump
         self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
-        self.v = array("i", bytes(4 * _V_N))  # what _g reads (_V_*)
+        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -300,18 +375,19 @@ class SkinModel:
         self.v[_V_BETA] = beta_q16
         self.jumped = 0
 
+    @micropython.native
     def rp(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
-        pulse with log2 I = li, log2 T = lt (_g's model, read as an anchor on Rp 0)."""
+        pulse with log2 I = li, log2 T = lt (_root's model, read as an anchor on Rp 0)."""
         v = self.v
         v[_V_PLI] = li
         v[_V_PLT] = lt
         v[_V_PRP] = 0
-        return _g(v, _K_ANCHOR, ls, lc)
+        return _root(v, _K_ANCHOR, ls, ls - 1, lc)
 
     @micropython.viper
     def _load(self, kind: int, p, o):
-        """Copy into self.v what _g reads for this kind (pulses p, o; the law's line)."""
+        """Copy into self.v what _root reads for this kind (pulses p, o; the law's line)."""
         v = ptr32(self.v)
         if kind == _K_LAW or kind == _K_CEIL:
             v[_V_LS] = int(self.ls)
@@ -336,70 +412,22 @@ class SkinModel:
             v[_V_OLT] = int(o.lt)
             v[_V_ORP] = int(o.rp_ohm)
 
+    @micropython.native
     def g(self, kind, x, lc, p, o):
         """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
         self._load(kind, p, o)
-        r = _g(self.v, kind, x, lc)
+        r = _root(self.v, kind, x, x - 1, lc)
         if kind == _K_TWO:
             self.lc_two = self.v[_V_LCTWO]
         return r
 
-    @micropython.viper
-    def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
+    def root(self, kind, a, b, lc, p, o):
         """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
-        to 1/2**16; NOROOT if the ends have one sign or g fails. Viper: one call of _g
-        per evaluation; the interpolation floor(num * w / den) in two 9-bit halves of w
-        (num <= den < 2**18, w <= 2**18: every product < 2**28)."""
+        to 1/2**16; NOROOT if the ends have one sign or g fails (_root)."""
         self._load(kind, p, o)
-        vv = self.v
-        fa = int(_g(vv, kind, a, lc))
-        fb = int(_g(vv, kind, b, lc))
-        if fa == NOROOT or fb == NOROOT or (fa > 0 and fb > 0) or (fa <= 0 and fb <= 0):
-            if fa != 0 and fb != 0:
-                return NOROOT
-            return a if fa == 0 else b
-        side = 0
-        n = 0
-        while b - a > 1 and n < 40:
-            n += 1
-            w = b - a
-            num = fa if fa > 0 else -fa
-            den = num + (fb if fb > 0 else -fb)
-            while den >= 0x40000:
-                den >>= 1
-                num >>= 1
-            if den >= 256 and w <= 0x40000:
-                t = num * (w >> 9)
-                q = t // den
-                t = ((t - q * den) << 9) + num * (w & 0x1FF)
-                x = a + (q << 9) + t // den
-            else:
-                x = a + (w >> 1)
-            if x <= a:
-                x = a + 1
-            elif x >= b:
-                x = b - 1
-            fx = int(_g(vv, kind, x, lc))
-            if fx == NOROOT:
-                return NOROOT
-            if fx == 0:
-                return x
-            if (fx > 0 and fa > 0) or (fx <= 0 and fa <= 0):  # Illinois: halve the end kept twice running
-                a = x
-                fa = fx
-                if side < 0:
-                    fb = fb >> 1 if fb > 1 or fb < -1 else fb
-                side = -1
-            else:
-                b = x
-                fb = fx
-                if side > 0:
-                    fa = fa >> 1 if fa > 1 or fa < -1 else fa
-                side = 1
-        if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
-            return a
-        return b
+        return _root(self.v, kind, a, b, lc)
 
+    @micropython.native
     def anchor(self, p, lc):
         """log2 S with which the model (log2 Cp = lc) reads pulse p, or NOROOT.
         R(I) >= Rp - Rs, so S is searched from there up to 16 times more."""
@@ -409,6 +437,7 @@ class SkinModel:
         lo = log2q(d) + mul_q16(p.li - _L_1MA, self.beta_q16)
         return self.root(_K_ANCHOR, lo, lo + 0x40000, lc, p, p)
 
+    @micropython.native
     def law_q(self, lq_k):
         """The law's charge (1/16 pC) on the model skin: on the mE curve up to t_max
         (searched from Q_k/4 to 4 Q_k), else on the line at t_max; NOROOT if none."""
@@ -435,6 +464,7 @@ class SkinModel:
             return NOROOT
         return exp2q(lq + 0x40000)
 
+    @micropython.native
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
@@ -460,6 +490,7 @@ class SkinModel:
                 if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
                     self.lc = lc
 
+    @micropython.native
     def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev):
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
