@@ -31,7 +31,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, exp2q, log2q, mul_q16, muldiv
+from fixmath import _EXP_TAB, _LOG_TAB, exp2q, log2q, mul_q16
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -81,10 +81,12 @@ _V_OLS = const(12)
 _V_LCTWO = const(13)  # log2 Cp found by the last _K_TWO evaluation
 _V_YQ4 = const(14)  # the controller's Eq. 3 (_K_LAW, _K_CEIL): y* (1/16 pC), mQ's numerator (pC),
 _V_MQN = const(15)  # x* (ohm), mQ's denominator (ohm), q_max - y* (1/16 pC)
-_V_XS = const(16)
+_V_XS = const(16)  # (-x*: a 64-bit viper reads a ptr32 word unsigned, so v holds no negative
+# value; _V_LS, _V_LC, _V_OLS, _V_LCTWO are kept + _V_BIAS for the same reason)
 _V_MQD = const(17)
 _V_LCAP = const(18)
 _V_N = const(19)
+_V_BIAS = const(0x10000000)
 
 
 @micropython.viper
@@ -98,6 +100,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
     v = ptr32(vv)
     e = ptr32(_EXP_TAB)
+    g2 = ptr32(_LOG_TAB)
     beta = v[_V_BETA]
     rs = v[_V_RS]
     only = 1 if b < a else 0
@@ -123,35 +126,80 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 my = my if mb < 0 else -my
             elif mb < 0:
                 my = -my
-            ls = v[_V_OLS] + my
-            lc = v[_V_LC] + x
+            ls = v[_V_OLS] - _V_BIAS + my
+            lc = v[_V_LC] - _V_BIAS + x
             li = v[_V_PLI]
             lt = v[_V_PLT]
         elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
-            ls = v[_V_LS]
-            lc = v[_V_LC]
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
             li = v[_V_LME] - x
             lt = (x << 1) - v[_V_LME]
         elif kind == _K_CEIL:  # x = log2 I at t_max
-            ls = v[_V_LS]
-            lc = v[_V_LC]
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
             li = x
             lt = v[_V_LTMAX]
         else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
-            r = int(exp2q(x))
-            my = x - int(log2q(r - v[_V_PRP] + v[_V_RS]))  # log2 (R / (R - Rp + Rs)) = z / ln 2
+            n = x  # r = exp2q(n), inline
+            k = (n & 0xFFFF) >> 10
+            eu = n & 0x3FF
+            n = n >> 16
+            ea = e[k]
+            eb = e[k + 1]
+            w = eu >> 2
+            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if n >= 22:
+                r = m << (n - 22)
+            elif n < -2:
+                r = 0
+            else:
+                r = (m + (1 << (21 - n))) >> (22 - n)
+            n = r - v[_V_PRP] + rs  # my = log2q(n), inline
+            if n < 1:
+                n = 1
+            k = 22
+            while n >= 0x800000:
+                n >>= 1
+                k += 1
+            while n < 0x400000:
+                n <<= 1
+                k -= 1
+            eu = (n >> 16) - 64
+            ea = g2[eu]
+            eb = g2[eu + 1]
+            m = n & 0xFFFF
+            w = m >> 8
+            my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
             ls = 0
             li = v[_V_OLI]
             lt = v[_V_OLT]
             if my <= 0:
                 ok = 0
             else:
-                lc = v[_V_PLT] - x + _L_1E6 - (int(log2q(my)) - 0x100000 + _L_LN2)
+                n = my  # lc = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                lc = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                lc = v[_V_PLT] - x + _L_1E6 - (lc - 0x100000 + _L_LN2)
                 ma = v[_V_PLI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
                 mc = -ma if ma < 0 else ma
                 my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
                 ls = x + (-my if ma < 0 else my)
-                v[_V_LCTWO] = lc
+                v[_V_LCTWO] = lc + _V_BIAS
         fx = NOROOT
         if ok:
             # the model's Rp (SkinModel.rp) for ls, lc, li, lt
@@ -273,7 +321,35 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     q = 0
                 else:
                     q = (m + (1 << (21 - n))) >> (22 - n)
-                fx = v[_V_YQ4] + int(muldiv(v[_V_MQN], rp - v[_V_XS], v[_V_MQD], 4, v[_V_LCAP])) - q
+                # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
+                ma = v[_V_MQN]
+                mb = rp + v[_V_XS]
+                mc = v[_V_MQD]
+                cap = v[_V_LCAP]
+                my = (ma >> 22) * mb
+                dq = my // mc
+                dr = my - dq * mc
+                if dq > cap >> 26:
+                    dq = cap + 1
+                else:
+                    my = (dr << 11) + ((ma >> 11) & 0x7FF) * mb
+                    dd = my // mc
+                    dq = (dq << 11) + dd
+                    dr = my - dd * mc
+                    if dq > cap >> 15:
+                        dq = cap + 1
+                    else:
+                        my = (dr << 11) + (ma & 0x7FF) * mb
+                        dd = my // mc
+                        dq = (dq << 11) + dd
+                        dr = my - dd * mc
+                        if dq > cap >> 4:
+                            dq = cap + 1
+                        else:
+                            dq = (dq << 4) + (dr << 4) // mc
+                            if dq > cap:
+                                dq = cap + 1
+                fx = v[_V_YQ4] + dq - q
         if only:
             return fx
         if phase == 0:
@@ -390,14 +466,14 @@ class SkinModel:
         """Copy into self.v what _root reads for this kind (pulses p, o; the law's line)."""
         v = ptr32(self.v)
         if kind == _K_LAW or kind == _K_CEIL:
-            v[_V_LS] = int(self.ls)
-            v[_V_LC] = int(self.lc)
+            v[_V_LS] = int(self.ls) + _V_BIAS
+            v[_V_LC] = int(self.lc) + _V_BIAS
             v[_V_LME] = int(self.lme)
             v[_V_LTMAX] = int(self.ltmax)
             c = self.c
             v[_V_YQ4] = int(c._y_q4)
             v[_V_MQN] = int(c._mq_num_pc)
-            v[_V_XS] = int(c.x_star_ohm)
+            v[_V_XS] = -int(c.x_star_ohm)
             v[_V_MQD] = int(c._mq_den_ohm)
             v[_V_LCAP] = int(c._line_cap_q4)
             return
@@ -405,8 +481,8 @@ class SkinModel:
         v[_V_PLT] = int(p.lt)
         v[_V_PRP] = int(p.rp_ohm)
         if kind == _K_PEEL:
-            v[_V_LC] = int(self.lc)
-            v[_V_OLS] = int(o.ls)
+            v[_V_LC] = int(self.lc) + _V_BIAS
+            v[_V_OLS] = int(o.ls) + _V_BIAS
         elif kind == _K_TWO:
             v[_V_OLI] = int(o.li)
             v[_V_OLT] = int(o.lt)
@@ -418,7 +494,7 @@ class SkinModel:
         self._load(kind, p, o)
         r = _root(self.v, kind, x, x - 1, lc)
         if kind == _K_TWO:
-            self.lc_two = self.v[_V_LCTWO]
+            self.lc_two = self.v[_V_LCTWO] - _V_BIAS
         return r
 
     def root(self, kind, a, b, lc, p, o):
