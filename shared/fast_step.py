@@ -86,6 +86,11 @@ def fast_pulse(c, qf, q_k, rp_ohm):
             if st >= 0:
                 return st
             c._measured(i_k, t_k, s_k)
+            if st == -2:  # the model ran out of its work per pulse: the paper's step when
+                if c.model_cuts < _SAT30:  # it lowers the charge, else the charge held
+                    c.model_cuts += 1
+                base = q_k << 4
+                return c._from_q(qf if qf < base else base)
         q_new = newton(c, qf, q_k, rp_ohm)
         if q_new != qf:
             st = c._from_q(q_new)

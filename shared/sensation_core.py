@@ -34,6 +34,7 @@ except ImportError:  # CPython: the decorator does nothing
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
 from fixmath import div2, div_small, isqrt_round, log2q, muldiv
 from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_RAISE_LOG2: the public API)
+    FAST_MODEL_WORK_MAX,
     FAST_MODEL_RAISE_LOG2,
     SKIN_BETA_MAX_Q16,
     SKIN_BETA_MIN_Q16,
@@ -152,6 +153,7 @@ class Controller:
         self.drift_ohm = 0  # MODE_FAST: Rp's last change not explained by our own step
         self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
         self.model_jumps = 0  # telemetry/diagnostics: jumps solved on the skin model
+        self.model_cuts = 0  # diagnostics: model jumps that ran out of FAST_MODEL_WORK_MAX
         self.skin_rs_ohm = 0  # the skin model as set (set_skin; 0 = none)
         self.skin_beta_q16 = 0
         self.skin_cp_pf = 0

@@ -41,6 +41,12 @@ SKIN_CP_MIN_PF = const(100)
 SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 # a jump on the skin model raises the charge by at most 2**this paper steps
 FAST_MODEL_RAISE_LOG2 = const(4)
+# the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
+# may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
+# search (its set-up costs about that many evaluations on the chip); a jump that runs out
+# takes the paper's step (fast_step.fast_pulse)
+FAST_MODEL_WORK_MAX = const(80)
+_ROOT_WORK = const(4)
 
 # sensation_core's RP_MAX_OHM and counter ceiling: a const() is folded only inside its own
 # module, and importing the core's would be a dictionary lookup per use on the chip (and a
@@ -63,6 +69,9 @@ _K_PEEL = const(1)  # x = log2 contact change since pulse o: the model reads pul
 _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
 _K_CEIL = const(3)  # x = log2 I at T = t_max: the line L(Rp) - I t_max
 _K_TWO = const(4)  # x = log2 R(I) at pulse p, Cp from p's Rp: the model reads pulse o's Rp
+_K_RP = const(5)  # not a root: the model's Rp itself for x = log2 S at pulse p (SkinModel.rp)
+# (g compares logarithms: log2 of the model's Rp or charge less log2 of the one it must
+# equal, nearly linear in x, so the regula falsi needs few evaluations)
 
 # SkinModel.v (an array('i')): what _root reads, copied there by SkinModel.root for its kind
 _V_RS = const(0)  # Rs (ohm)
@@ -85,7 +94,11 @@ _V_XS = const(16)  # (-x*: a 64-bit viper reads a ptr32 word unsigned, so v hold
 # value; _V_LS, _V_LC, _V_OLS, _V_LCTWO are kept + _V_BIAS for the same reason)
 _V_MQD = const(17)
 _V_LCAP = const(18)
-_V_N = const(19)
+_V_PRLP = const(19)  # log2 of pulse p's Rp
+_V_ORLP = const(20)  # log2 of pulse o's Rp
+_V_WORK = const(21)  # work units spent since the jump began (SkinModel.jump)
+_V_CUT = const(22)  # 1: a root search of this jump ran out of FAST_MODEL_WORK_MAX
+_V_N = const(23)
 _V_BIAS = const(0x10000000)
 
 
@@ -104,6 +117,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     beta = v[_V_BETA]
     rs = v[_V_RS]
     only = 1 if b < a else 0
+    x0 = lc0 if kind == _K_LAW else 0  # _K_LAW: lc0 is a guess of the root (else 0)
+    if not only:
+        v[_V_WORK] += _ROOT_WORK
     phase = 0  # 0: evaluating at a, 1: at b, 2: inside
     fa = 0
     fb = 0
@@ -111,9 +127,14 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     it = 0  # interpolation steps
     x = a
     while True:
+        if not only:  # the jump's budget
+            if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+                v[_V_CUT] = 1
+                return NOROOT
+            v[_V_WORK] += 1
         lc = lc0
         ok = 1
-        if kind == _K_ANCHOR:
+        if kind == _K_ANCHOR or kind == _K_RP:
             ls = x
             li = v[_V_PLI]
             lt = v[_V_PLT]
@@ -299,28 +320,30 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 else:
                     r = (m + (1 << (21 - n))) >> (22 - n)
                 rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
-            if kind == _K_ANCHOR or kind == _K_PEEL:
-                fx = rp - v[_V_PRP]
-            elif kind == _K_TWO:
-                fx = rp - v[_V_ORP]
+            if kind == _K_RP:
+                fx = rp
+            elif kind == _K_ANCHOR or kind == _K_PEEL or kind == _K_TWO:  # log2 of the model's Rp less the one read
+                n = rp  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                fx = my - (v[_V_ORLP] if kind == _K_TWO else v[_V_PRLP])
             else:
-                # _K_LAW, _K_CEIL: the line's charge L(Rp) less the pulse's (1/16 pC)
+                # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
                 if rp > _RP_MAX_OHM:
                     rp = _RP_MAX_OHM
-                n = x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000
-                k = (n & 0xFFFF) >> 10
-                eu = n & 0x3FF
-                n = n >> 16
-                ea = e[k]
-                eb = e[k + 1]
-                w = eu >> 2
-                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                if n >= 22:
-                    q = m << (n - 22)
-                elif n < -2:
-                    q = 0
-                else:
-                    q = (m + (1 << (21 - n))) >> (22 - n)
                 # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
                 ma = v[_V_MQN]
                 mb = rp + v[_V_XS]
@@ -349,7 +372,23 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                             dq = (dq << 4) + (dr << 4) // mc
                             if dq > cap:
                                 dq = cap + 1
-                fx = v[_V_YQ4] + dq - q
+                n = v[_V_YQ4] + dq  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                fx = my - (x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000)
         if only:
             return fx
         if phase == 0:
@@ -401,6 +440,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             x = a + 1
         elif x >= b:
             x = b - 1
+        if it == 1 and x0 > a and x0 < b:  # the caller's guess first
+            x = x0
     if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
         return a
     return b
@@ -458,28 +499,21 @@ class SkinModel:
         v = self.v
         v[_V_PLI] = li
         v[_V_PLT] = lt
-        v[_V_PRP] = 0
-        return _root(v, _K_ANCHOR, ls, ls - 1, lc)
+        return _root(v, _K_RP, ls, ls - 1, lc)
 
     @micropython.viper
     def _load(self, kind: int, p, o):
         """Copy into self.v what _root reads for this kind (pulses p, o; the law's line)."""
-        v = ptr32(self.v)
-        if kind == _K_LAW or kind == _K_CEIL:
+        vv = self.v
+        v = ptr32(vv)
+        if kind == _K_LAW or kind == _K_CEIL:  # (the rest: _begin)
             v[_V_LS] = int(self.ls) + _V_BIAS
             v[_V_LC] = int(self.lc) + _V_BIAS
-            v[_V_LME] = int(self.lme)
-            v[_V_LTMAX] = int(self.ltmax)
-            c = self.c
-            v[_V_YQ4] = int(c._y_q4)
-            v[_V_MQN] = int(c._mq_num_pc)
-            v[_V_XS] = -int(c.x_star_ohm)
-            v[_V_MQD] = int(c._mq_den_ohm)
-            v[_V_LCAP] = int(c._line_cap_q4)
             return
         v[_V_PLI] = int(p.li)
         v[_V_PLT] = int(p.lt)
         v[_V_PRP] = int(p.rp_ohm)
+        v[_V_PRLP] = int(log2q(int(p.rp_ohm)))
         if kind == _K_PEEL:
             v[_V_LC] = int(self.lc) + _V_BIAS
             v[_V_OLS] = int(o.ls) + _V_BIAS
@@ -487,6 +521,22 @@ class SkinModel:
             v[_V_OLI] = int(o.li)
             v[_V_OLT] = int(o.lt)
             v[_V_ORP] = int(o.rp_ohm)
+            v[_V_ORLP] = int(log2q(int(o.rp_ohm)))
+
+    @micropython.viper
+    def _begin(self):
+        """A jump begins: no evaluation yet; the law's values (mE, t_max, Eq. 3) into self.v."""
+        v = ptr32(self.v)
+        v[_V_WORK] = 0
+        v[_V_CUT] = 0
+        v[_V_LME] = int(self.lme)
+        v[_V_LTMAX] = int(self.ltmax)
+        c = self.c
+        v[_V_YQ4] = int(c._y_q4)
+        v[_V_MQN] = int(c._mq_num_pc)
+        v[_V_XS] = -int(c.x_star_ohm)
+        v[_V_MQD] = int(c._mq_den_ohm)
+        v[_V_LCAP] = int(c._line_cap_q4)
 
     @micropython.native
     def g(self, kind, x, lc, p, o):
@@ -497,11 +547,12 @@ class SkinModel:
             self.lc_two = self.v[_V_LCTWO] - _V_BIAS
         return r
 
-    def root(self, kind, a, b, lc, p, o):
+    @micropython.viper
+    def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
         """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
-        to 1/2**16; NOROOT if the ends have one sign or g fails (_root)."""
+        to 1/2**16; NOROOT if the ends have one sign or g fails (_load, then _root)."""
         self._load(kind, p, o)
-        return _root(self.v, kind, a, b, lc)
+        return int(_root(self.v, kind, a, b, lc))
 
     @micropython.native
     def anchor(self, p, lc):
@@ -535,7 +586,7 @@ class SkinModel:
                 if li == NOROOT:
                     return NOROOT
                 return exp2q(li + self.ltmax + 0x40000)
-        lq = self.root(_K_LAW, lq_k - 0x20000, hi, 0, None, None)
+        lq = self.root(_K_LAW, lq_k - 0x20000, hi, lq_k, None, None)  # guess: the charge just delivered
         if lq == NOROOT:
             return NOROOT
         return exp2q(lq + 0x40000)
@@ -573,7 +624,11 @@ class SkinModel:
         prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
         that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
         the contact hypothesis is also solved and the smaller charge taken. Returns the
-        status, or -1 when the model has no answer (the caller goes on without it)."""
+        status, or -1 when the model has no answer (the caller goes on without it), -2
+        when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
+        step: never the larger hydration answer nor a search's unfinished value)."""
+        self._begin()
+        v = self.v
         now = self.now
         before = self.before
         now.li = log2q(i_k)
@@ -591,12 +646,12 @@ class SkinModel:
                 self.refit_cp()
         ls = self.anchor(now, self.lc)
         if ls == NOROOT:
-            return -1
+            return -2 if v[_V_CUT] else -1
         self.ls = ls
         lq_k = log2q(q_k)
         q16 = self.law_q(lq_k)
         if q16 == NOROOT:
-            return -1
+            return -2 if v[_V_CUT] else -1
         if q16 > q_k << 4 and not jumped and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
@@ -615,6 +670,8 @@ class SkinModel:
                     else:
                         self.ls = ls1
                         self.lc = lc1
+            if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
+                return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base
