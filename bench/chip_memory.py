@@ -104,16 +104,18 @@ def main():
           f"overruns {r['overruns']}")
 
 
-def run(frames, chunk, channels=0, progress=False):
-    """The figures as a dict (bench and tests/chip/test_chip_memory.py)."""
+def run(frames, chunk, channels=0, progress=False, host=None):
+    """The figures as a dict (this bench, and tests/chip/test_chip_memory.py with its host)."""
     cfg = load_cfg()
     n = channels or cfg.N_CHANNELS
-    try:
-        host = start_host(mpy_cross())
-    except NoEmulator as e:
-        sys.exit(str(e))
-    except ChipUnavailable as e:
-        sys.exit(f"chip_memory.py: {e}")
+    own = host is None
+    if own:
+        try:
+            host = start_host(mpy_cross())
+        except NoEmulator as e:
+            sys.exit(str(e))
+        except ChipUnavailable as e:
+            sys.exit(f"chip_memory.py: {e}")
     try:
         chip = host.boot(host.image)
         chip.wiring(cfg, n)
@@ -141,6 +143,7 @@ def run(frames, chunk, channels=0, progress=False):
             if base is None:
                 base = used
                 kept_first = used - alloc0
+                first_alloc = alloc
             if progress:
                 print(f"  frames {done}/{frames}: allocated {alloc} B in this chunk, heap used {used} B "
                       f"(kept since chunk 1: {used - base} B), free {free} B, overruns {overruns}, "
@@ -148,9 +151,11 @@ def run(frames, chunk, channels=0, progress=False):
             if k == 0:
                 break
         return {"free0": free0, "alloc0": alloc0, "frames": done, "channels": n, "allocated": allocated,
+                "allocated_after_first": allocated - first_alloc,
                 "kept": used - base, "kept_first": kept_first, "reports": reports, "overruns": overruns}
     finally:
-        host.close()
+        if own:
+            host.close()
 
 
 if __name__ == "__main__":
