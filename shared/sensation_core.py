@@ -33,7 +33,7 @@ except ImportError:  # CPython: the decorator does nothing
 
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
 from fixmath import div2, div_small, isqrt_round, log2q, muldiv
-from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_RAISE_LOG2: the public API)
+from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_*: the public API)
     FAST_MODEL_WORK_MAX,
     FAST_MODEL_RAISE_LOG2,
     SKIN_BETA_MAX_Q16,
