@@ -97,7 +97,8 @@ def main():
     n = ap.parse_args().n
     with tempfile.TemporaryDirectory() as d:
         for m in ("sensation_core", "fixmath", "fast_step", "skin_model"):  # the core and its modules
-            subprocess.run([str(BIN / "mpy-cross"), "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")], check=True)
+            subprocess.run([str(BIN / "mpy-cross"), "-march=x64", "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")],
+                           check=True)  # -march: the core has viper functions
         Path(d, "b.py").write_text(MP_SCRIPT.replace("NN_PLACEHOLDER", str(n)))
         env = dict(os.environ, MICROPYPATH=d)
         out = subprocess.run([str(BIN / "micropython"), f"{d}/b.py"], capture_output=True, text=True, env=env, check=True)

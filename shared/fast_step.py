@@ -13,8 +13,14 @@ c.drift_ohm. Every intermediate is below 2**30; nothing is allocated.
 """
 
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def native(f):
+            return f
 
     def const(x):
         return x
@@ -54,6 +60,7 @@ def least_elastic(x):
     return (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
 
 
+@micropython.native
 def fast_pulse(c, qf, q_k, rp_ohm):
     """MODE_FAST's next pulse from the paper's step qf (1/16 pC), for the pulse of charge
     q_k just measured (c.i_ua, c.t_us, c.status) with Rp = rp_ohm: the drift
@@ -79,6 +86,11 @@ def fast_pulse(c, qf, q_k, rp_ohm):
             if st >= 0:
                 return st
             c._measured(i_k, t_k, s_k)
+            if st == -2:  # the model ran out of its work per pulse: the paper's step when
+                if c.model_cuts < _SAT30:  # it lowers the charge, else the charge held
+                    c.model_cuts += 1
+                base = q_k << 4
+                return c._from_q(qf if qf < base else base)
         q_new = newton(c, qf, q_k, rp_ohm)
         if q_new != qf:
             st = c._from_q(q_new)
@@ -104,6 +116,7 @@ def fast_pulse(c, qf, q_k, rp_ohm):
     return st
 
 
+@micropython.native
 def newton(c, qf, q_k, rp_ohm):
     """A Newton step towards the self-consistent charge (1/16 pC), or qf.
 
@@ -175,6 +188,7 @@ def newton(c, qf, q_k, rp_ohm):
     return q_new
 
 
+@micropython.native
 def drift(c, q_k, rp_ohm):
     """The Rp the law is applied to under a falling drift (sweat, gel soaking in), else
     rp_ohm. Rp's change since the last pulse less what our own step explains (with the

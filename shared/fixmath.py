@@ -5,12 +5,23 @@ above 2**30 would become a heap-allocated long int). Formats and error bounds:
 docs/fixed-point.md. Logarithms are log2 in Q.16, as the skin model uses them.
 """
 
+from array import array
+
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the array itself
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def viper(f):
+            return f
 
     def const(x):
         return x
+
+    def ptr32(a):
+        return a
 
 
 _M11 = const(0x7FF)
@@ -19,7 +30,8 @@ _SAT15 = const(0x8000)  # "at least 2**15": what div2 returns when saturated
 _SAT30 = const(0x3FFFFFFF)
 
 
-def muldiv(a, b, c, fbits, cap):
+@micropython.viper
+def muldiv(a: int, b: int, c: int, fbits: int, cap: int) -> int:
     """floor(a * b * 2**fbits / c), or cap + 1 if that exceeds cap.
 
     Needs 0 <= a < 2**30, 0 <= b <= 2**18, 256 <= c <= 2**18, 0 <= fbits <= 11,
@@ -50,7 +62,8 @@ def muldiv(a, b, c, fbits, cap):
     return q
 
 
-def div2(hi, lo, dv, rnd):
+@micropython.viper
+def div2(hi: int, lo: int, dv: int, rnd: int) -> int:
     """(hi * 2**15 + lo) / dv, floored (rnd=0) or rounded half up (rnd=1).
 
     Needs 0 <= lo < 2**15, 1 <= dv <= 2**29. Returns _SAT15 when the quotient
@@ -75,7 +88,8 @@ def div2(hi, lo, dv, rnd):
     return q
 
 
-def div_small(hi, lo, dv):
+@micropython.viper
+def div_small(hi: int, lo: int, dv: int) -> int:
     """floor((hi * 2**15 + lo) / dv) for 1 <= dv < 2**15; 2**30 - 1 if >= 2**30."""
     q = hi // dv
     if q >= _SAT15:
@@ -84,7 +98,8 @@ def div_small(hi, lo, dv):
     return (q << 15) + ((r << 15) + lo) // dv
 
 
-def isqrt_round(n):
+@micropython.viper
+def isqrt_round(n: int) -> int:
     """sqrt(n) rounded to nearest, for 0 <= n < 2**30 (digit-by-digit)."""
     r = 0
     b = 0x10000000
@@ -102,7 +117,8 @@ def isqrt_round(n):
     return r
 
 
-def frac12(x, den):
+@micropython.viper
+def frac12(x: int, den: int) -> int:
     """floor(x * 2**12 / den) for 0 <= x < 2**27, 1 <= den < 2**25 (4-bit steps)."""
     q = x // den
     r = x - q * den
@@ -116,24 +132,25 @@ def frac12(x, den):
     return q
 
 
-_LOG_TAB = (  # round(2**16 log2(1 + k/64)), k = 0..65
+_LOG_TAB = array("i", (  # round(2**16 log2(1 + k/64)), k = 0..65
     0, 1466, 2909, 4331, 5732, 7112, 8473, 9814, 11136, 12440, 13727, 14996, 16248, 17484, 18704, 19909,
     21098, 22272, 23433, 24579, 25711, 26830, 27936, 29029, 30109, 31178, 32234, 33279, 34312, 35334, 36346,
     37346, 38336, 39316, 40286, 41246, 42196, 43137, 44068, 44990, 45904, 46809, 47705, 48593, 49472, 50344,
     51207, 52063, 52911, 53751, 54584, 55410, 56229, 57040, 57845, 58643, 59434, 60219, 60997, 61769, 62534,
     63294, 64047, 64794, 65536, 66272,
-)
-_EXP_TAB = (  # round(2**22 2**(k/64)), k = 0..65
+))
+_EXP_TAB = array("i", (  # round(2**22 2**(k/64)), k = 0..65
     4194304, 4239977, 4286147, 4332820, 4380002, 4427697, 4475911, 4524651, 4573921, 4623728, 4674077,
     4724974, 4776426, 4828438, 4881016, 4934167, 4987896, 5042211, 5097117, 5152621, 5208729, 5265449,
     5322786, 5380747, 5439339, 5498570, 5558445, 5618973, 5680159, 5742012, 5804539, 5867746, 5931642,
     5996233, 6061528, 6127533, 6194258, 6261709, 6329894, 6398822, 6468501, 6538938, 6610143, 6682122,
     6754886, 6828442, 6902799, 6977965, 7053950, 7130763, 7208412, 7286906, 7366255, 7446469, 7527555,
     7609525, 7692387, 7776152, 7860829, 7946428, 8032959, 8120432, 8208857, 8298246, 8388608, 8479954,
-)
+))
 
 
-def log2q(x):
+@micropython.viper
+def log2q(x: int) -> int:
     """log2(x) in Q.16 for an integer 1 <= x < 2**30 (error < 1 / 2**16: quadratic
     interpolation in a 64-cell table). x < 1 is read as 1 (no endless loop)."""
     if x < 1:
@@ -145,25 +162,28 @@ def log2q(x):
     while x < 0x400000:
         x <<= 1
         n -= 1
+    t = ptr32(_LOG_TAB)
     k = (x >> 16) - 64
-    a = _LOG_TAB[k]
-    b = _LOG_TAB[k + 1]
+    a = int(t[k])
+    b = int(t[k + 1])
     u = x & 0xFFFF
     v = u >> 8
-    return (n << 16) + a + (((b - a) * u + 0x8000) >> 16) + ((v * (v - 256) * (_LOG_TAB[k + 2] - b - b + a) + 0x10000) >> 17)
+    return (n << 16) + a + (((b - a) * u + 0x8000) >> 16) + ((v * (v - 256) * (int(t[k + 2]) - b - b + a) + 0x10000) >> 17)
 
 
-def exp2q(lx):
+@micropython.viper
+def exp2q(lx: int) -> int:
     """round(2**(lx / 2**16)) for lx < 29 * 2**16 (relative error < 1e-6 before the
     rounding: quadratic interpolation in a 64-cell table)."""
     n = lx >> 16
     f = lx & 0xFFFF
+    t = ptr32(_EXP_TAB)
     k = f >> 10
-    a = _EXP_TAB[k]
-    b = _EXP_TAB[k + 1]
+    a = int(t[k])
+    b = int(t[k + 1])
     u = f & 0x3FF
     v = u >> 2
-    m = a + (((b - a) * u + 512) >> 10) + ((v * (v - 256) * (_EXP_TAB[k + 2] - b - b + a) + 0x10000) >> 17)  # Q.22
+    m = a + (((b - a) * u + 512) >> 10) + ((v * (v - 256) * (int(t[k + 2]) - b - b + a) + 0x10000) >> 17)  # Q.22
     if n >= 22:
         return m << (n - 22)
     if n < -2:
@@ -172,9 +192,12 @@ def exp2q(lx):
     return (m + (1 << (s - 1))) >> s
 
 
-def mul_q16(x, b):
+@micropython.viper
+def mul_q16(x: int, b: int) -> int:
     """x * b / 2**16 rounded towards zero, |x| < 2**21, |b| < 2**17 (split: < 2**30)."""
     a = -x if x < 0 else x
     c = -b if b < 0 else b
     y = (((a >> 10) * c) >> 6) + (((a & 0x3FF) * c) >> 16)
-    return -y if (x < 0) != (b < 0) else y
+    if x < 0:
+        return y if b < 0 else -y
+    return -y if b < 0 else y

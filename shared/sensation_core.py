@@ -18,8 +18,14 @@ Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
 """
 
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def native(f):
+            return f
 
     def const(x):
         return x
@@ -27,7 +33,8 @@ except ImportError:  # CPython
 
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
 from fixmath import div2, div_small, isqrt_round, log2q, muldiv
-from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_RAISE_LOG2: the public API)
+from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_*: the public API)
+    FAST_MODEL_WORK_MAX,
     FAST_MODEL_RAISE_LOG2,
     SKIN_BETA_MAX_Q16,
     SKIN_BETA_MIN_Q16,
@@ -83,6 +90,7 @@ def _check(name, v, lo, hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
+@micropython.native
 def _t_from_qf(qf, i0, t0):
     """Eq. 4's T = Q^2 / mE, rounded, with Q = qf / 16 pC, mE = i0^2 t0; _T_SAT if huge.
 
@@ -145,6 +153,7 @@ class Controller:
         self.drift_ohm = 0  # MODE_FAST: Rp's last change not explained by our own step
         self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
         self.model_jumps = 0  # telemetry/diagnostics: jumps solved on the skin model
+        self.model_cuts = 0  # diagnostics: model jumps that ran out of FAST_MODEL_WORK_MAX
         self.skin_rs_ohm = 0  # the skin model as set (set_skin; 0 = none)
         self.skin_beta_q16 = 0
         self.skin_cp_pf = 0
@@ -262,6 +271,7 @@ class Controller:
         self.drift_ohm = 0
         self.skin.jumped = 0
 
+    @micropython.native
     def update(self, rp_ohm):
         """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status."""
         if not self.calibrated:
@@ -303,10 +313,12 @@ class Controller:
         b.clean = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
+    @micropython.native
     def _line(self, rp_ohm):
         """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
         return self._y_q4 + muldiv(self._mq_num_pc, rp_ohm - self.x_star_ohm, self._mq_den_ohm, 4, self._line_cap_q4)
 
+    @micropython.native
     def _measured(self, i_ua, t_us, status):
         """Put back the measured pulse (_from_q reads it) before another proposal."""
         self.i_ua = i_ua
@@ -341,6 +353,7 @@ class Controller:
         self.status = st
         return st
 
+    @micropython.native
     def _from_q(self, qf):
         """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0)."""
         st = ST_OK

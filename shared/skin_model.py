@@ -10,15 +10,28 @@ ls = log2 S, lc = log2 Cp, lq = log2 Q). Every intermediate is below 2**30 and
 nothing is allocated after construction.
 """
 
+from array import array
+
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython
+except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the array itself
+
+    class micropython:  # noqa: N801 (stands in for the module's decorator)
+        @staticmethod
+        def viper(f):
+            return f
+
+        native = viper
 
     def const(x):
         return x
 
+    def ptr32(a):
+        return a
 
-from fixmath import exp2q, log2q, mul_q16, muldiv
+
+from fixmath import _EXP_TAB, _LOG_TAB, exp2q, log2q, mul_q16
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -28,6 +41,12 @@ SKIN_CP_MIN_PF = const(100)
 SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 # a jump on the skin model raises the charge by at most 2**this paper steps
 FAST_MODEL_RAISE_LOG2 = const(4)
+# the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
+# may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
+# search (its set-up costs about that many evaluations on the chip); a jump that runs out
+# takes the paper's step (fast_step.fast_pulse)
+FAST_MODEL_WORK_MAX = const(80)
+_ROOT_WORK = const(4)
 
 # sensation_core's RP_MAX_OHM and counter ceiling: a const() is folded only inside its own
 # module, and importing the core's would be a dictionary lookup per use on the chip (and a
@@ -50,6 +69,382 @@ _K_PEEL = const(1)  # x = log2 contact change since pulse o: the model reads pul
 _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
 _K_CEIL = const(3)  # x = log2 I at T = t_max: the line L(Rp) - I t_max
 _K_TWO = const(4)  # x = log2 R(I) at pulse p, Cp from p's Rp: the model reads pulse o's Rp
+_K_RP = const(5)  # not a root: the model's Rp itself for x = log2 S at pulse p (SkinModel.rp)
+# (g compares logarithms: log2 of the model's Rp or charge less log2 of the one it must
+# equal, nearly linear in x, so the regula falsi needs few evaluations)
+
+# SkinModel.v (an array('i')): what _root reads, copied there by SkinModel.root for its kind
+_V_RS = const(0)  # Rs (ohm)
+_V_BETA = const(1)  # beta, Q.16
+_V_LS = const(2)  # log2 S (_K_LAW, _K_CEIL)
+_V_LC = const(3)  # log2 Cp (_K_PEEL, _K_LAW, _K_CEIL)
+_V_LME = const(4)  # log2 mE (_K_LAW)
+_V_LTMAX = const(5)  # log2 t_max (_K_CEIL)
+_V_PLI = const(6)  # pulse p: log2 I, log2 T, Rp
+_V_PLT = const(7)
+_V_PRP = const(8)
+_V_OLI = const(9)  # pulse o: log2 I, log2 T, Rp, log2 S
+_V_OLT = const(10)
+_V_ORP = const(11)
+_V_OLS = const(12)
+_V_LCTWO = const(13)  # log2 Cp found by the last _K_TWO evaluation
+_V_YQ4 = const(14)  # the controller's Eq. 3 (_K_LAW, _K_CEIL): y* (1/16 pC), mQ's numerator (pC),
+_V_MQN = const(15)  # x* (ohm), mQ's denominator (ohm), q_max - y* (1/16 pC)
+_V_XS = const(16)  # (-x*: a 64-bit viper reads a ptr32 word unsigned, so v holds no negative
+# value; _V_LS, _V_LC, _V_OLS, _V_LCTWO are kept + _V_BIAS for the same reason)
+_V_MQD = const(17)
+_V_LCAP = const(18)
+_V_PRLP = const(19)  # log2 of pulse p's Rp
+_V_ORLP = const(20)  # log2 of pulse o's Rp
+_V_WORK = const(21)  # work units spent since the jump began (SkinModel.jump)
+_V_CUT = const(22)  # 1: a root search of this jump ran out of FAST_MODEL_WORK_MAX
+_V_N = const(23)
+_V_BIAS = const(0x10000000)
+
+
+@micropython.viper
+def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
+    """SkinModel.root on the values in vv (SkinModel.v; _load copies them there): x in
+    [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16;
+    NOROOT if the ends have one sign or g fails. With b < a: g(kind, a, lc0) itself.
+    One machine-code function (viper) with the model's Rp and fixmath.exp2q's
+    interpolation inline: no call per evaluation. Every value is below 2**30, so
+    32-bit (ARM) and 64-bit words give Python's results; the interpolation
+    floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
+    v = ptr32(vv)
+    e = ptr32(_EXP_TAB)
+    g2 = ptr32(_LOG_TAB)
+    beta = v[_V_BETA]
+    rs = v[_V_RS]
+    only = 1 if b < a else 0
+    x0 = lc0 if kind == _K_LAW else 0  # _K_LAW: lc0 is a guess of the root (else 0)
+    if not only:
+        v[_V_WORK] += _ROOT_WORK
+    phase = 0  # 0: evaluating at a, 1: at b, 2: inside
+    fa = 0
+    fb = 0
+    side = 0
+    it = 0  # interpolation steps
+    x = a
+    while True:
+        if not only:  # the jump's budget
+            if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+                v[_V_CUT] = 1
+                return NOROOT
+            v[_V_WORK] += 1
+        lc = lc0
+        ok = 1
+        if kind == _K_ANCHOR or kind == _K_RP:
+            ls = x
+            li = v[_V_PLI]
+            lt = v[_V_PLT]
+        elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+            mb = beta - 0x10000  # mul_q16(x, mb), inline
+            ma = -x if x < 0 else x
+            mc = -mb if mb < 0 else mb
+            my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+            if x < 0:
+                my = my if mb < 0 else -my
+            elif mb < 0:
+                my = -my
+            ls = v[_V_OLS] - _V_BIAS + my
+            lc = v[_V_LC] - _V_BIAS + x
+            li = v[_V_PLI]
+            lt = v[_V_PLT]
+        elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
+            li = v[_V_LME] - x
+            lt = (x << 1) - v[_V_LME]
+        elif kind == _K_CEIL:  # x = log2 I at t_max
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
+            li = x
+            lt = v[_V_LTMAX]
+        else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
+            n = x  # r = exp2q(n), inline
+            k = (n & 0xFFFF) >> 10
+            eu = n & 0x3FF
+            n = n >> 16
+            ea = e[k]
+            eb = e[k + 1]
+            w = eu >> 2
+            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if n >= 22:
+                r = m << (n - 22)
+            elif n < -2:
+                r = 0
+            else:
+                r = (m + (1 << (21 - n))) >> (22 - n)
+            n = r - v[_V_PRP] + rs  # my = log2q(n), inline
+            if n < 1:
+                n = 1
+            k = 22
+            while n >= 0x800000:
+                n >>= 1
+                k += 1
+            while n < 0x400000:
+                n <<= 1
+                k -= 1
+            eu = (n >> 16) - 64
+            ea = g2[eu]
+            eb = g2[eu + 1]
+            m = n & 0xFFFF
+            w = m >> 8
+            my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
+            ls = 0
+            li = v[_V_OLI]
+            lt = v[_V_OLT]
+            if my <= 0:
+                ok = 0
+            else:
+                n = my  # lc = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                lc = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                lc = v[_V_PLT] - x + _L_1E6 - (lc - 0x100000 + _L_LN2)
+                ma = v[_V_PLI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+                mc = -ma if ma < 0 else ma
+                my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+                ls = x + (-my if ma < 0 else my)
+                v[_V_LCTWO] = lc + _V_BIAS
+        fx = NOROOT
+        if ok:
+            # the model's Rp (SkinModel.rp) for ls, lc, li, lt
+            ma = li - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+            mc = -ma if ma < 0 else ma
+            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+            lr = ls - (-my if ma < 0 else my)  # log2 R(I)
+            lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+            if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
+                lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
+                if lrz > _L_R_MAX:
+                    rp = 0x200000
+                else:
+                    z = 0
+                    if lz > -0x1E0000:  # z in Q.14, < 2**13
+                        n = lz + 0xE0000  # z = exp2q(n), inline
+                        k = (n & 0xFFFF) >> 10
+                        eu = n & 0x3FF
+                        n = n >> 16
+                        ea = e[k]
+                        eb = e[k + 1]
+                        w = eu >> 2
+                        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                        if n >= 22:
+                            z = m << (n - 22)
+                        elif n < -2:
+                            z = 0
+                        else:
+                            z = (m + (1 << (21 - n))) >> (22 - n)
+                    u = 16384 - z // 5
+                    u = 16384 - ((z * u) >> 14) // 4
+                    u = 16384 - ((z * u) >> 14) // 3
+                    u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
+                    n = lrz  # r = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        r = m << (n - 22)
+                    elif n < -2:
+                        r = 0
+                    else:
+                        r = (m + (1 << (21 - n))) >> (22 - n)
+                    rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
+            elif lr > _L_R_MAX:
+                rp = 0x200000
+            else:
+                if lz > _L_Z12:  # charged: exp(-z) < 2**-17
+                    u = 0x8000
+                else:
+                    n = lz + 0x100000  # z = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        z = m << (n - 22)
+                    elif n < -2:
+                        z = 0
+                    else:
+                        z = (m + (1 << (21 - n))) >> (22 - n)
+                    lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
+                    n = lw + 0xF0000  # u = exp2q(n), inline
+                    k = (n & 0xFFFF) >> 10
+                    eu = n & 0x3FF
+                    n = n >> 16
+                    ea = e[k]
+                    eb = e[k + 1]
+                    w = eu >> 2
+                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                    if n >= 22:
+                        u = m << (n - 22)
+                    elif n < -2:
+                        u = 0
+                    else:
+                        u = (m + (1 << (21 - n))) >> (22 - n)
+                    u = 0x8000 - u  # 1 - e^-z in Q.15
+                n = lr  # r = exp2q(n), inline
+                k = (n & 0xFFFF) >> 10
+                eu = n & 0x3FF
+                n = n >> 16
+                ea = e[k]
+                eb = e[k + 1]
+                w = eu >> 2
+                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+                if n >= 22:
+                    r = m << (n - 22)
+                elif n < -2:
+                    r = 0
+                else:
+                    r = (m + (1 << (21 - n))) >> (22 - n)
+                rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+            if kind == _K_RP:
+                fx = rp
+            elif kind == _K_ANCHOR or kind == _K_PEEL or kind == _K_TWO:  # log2 of the model's Rp less the one read
+                n = rp  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                fx = my - (v[_V_ORLP] if kind == _K_TWO else v[_V_PRLP])
+            else:
+                # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
+                if rp > _RP_MAX_OHM:
+                    rp = _RP_MAX_OHM
+                # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
+                ma = v[_V_MQN]
+                mb = rp + v[_V_XS]
+                mc = v[_V_MQD]
+                cap = v[_V_LCAP]
+                my = (ma >> 22) * mb
+                dq = my // mc
+                dr = my - dq * mc
+                if dq > cap >> 26:
+                    dq = cap + 1
+                else:
+                    my = (dr << 11) + ((ma >> 11) & 0x7FF) * mb
+                    dd = my // mc
+                    dq = (dq << 11) + dd
+                    dr = my - dd * mc
+                    if dq > cap >> 15:
+                        dq = cap + 1
+                    else:
+                        my = (dr << 11) + (ma & 0x7FF) * mb
+                        dd = my // mc
+                        dq = (dq << 11) + dd
+                        dr = my - dd * mc
+                        if dq > cap >> 4:
+                            dq = cap + 1
+                        else:
+                            dq = (dq << 4) + (dr << 4) // mc
+                            if dq > cap:
+                                dq = cap + 1
+                n = v[_V_YQ4] + dq  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                while n >= 0x800000:
+                    n >>= 1
+                    k += 1
+                while n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                ea = g2[eu]
+                eb = g2[eu + 1]
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                fx = my - (x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000)
+        if only:
+            return fx
+        if phase == 0:
+            fa = fx
+            x = b
+            phase = 1
+            continue
+        if phase == 1:
+            fb = fx
+            phase = 2
+            if fa == NOROOT or fb == NOROOT or (fa > 0 and fb > 0) or (fa <= 0 and fb <= 0):
+                if fa != 0 and fb != 0:
+                    return NOROOT
+                return a if fa == 0 else b
+        else:
+            if fx == NOROOT:
+                return NOROOT
+            if fx == 0:
+                return x
+            if (fx > 0 and fa > 0) or (fx <= 0 and fa <= 0):  # Illinois: halve the end kept twice running
+                a = x
+                fa = fx
+                if side < 0:
+                    fb = fb >> 1 if fb > 1 or fb < -1 else fb
+                side = -1
+            else:
+                b = x
+                fb = fx
+                if side > 0:
+                    fa = fa >> 1 if fa > 1 or fa < -1 else fa
+                side = 1
+        if b - a <= 1 or it >= 40:
+            break
+        it += 1
+        w = b - a
+        num = fa if fa > 0 else -fa
+        den = num + (fb if fb > 0 else -fb)
+        while den >= 0x40000:
+            den >>= 1
+            num >>= 1
+        if den >= 256 and w <= 0x40000:
+            t = num * (w >> 9)
+            q = t // den
+            t = ((t - q * den) << 9) + num * (w & 0x1FF)
+            x = a + (q << 9) + t // den
+        else:
+            x = a + (w >> 1)
+        if x <= a:
+            x = a + 1
+        elif x >= b:
+            x = b - 1
+        if it == 1 and x0 > a and x0 < b:  # the caller's guess first
+            x = x0
+    if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+        return a
+    return b
 
 
 class LogPulse:
@@ -81,6 +476,7 @@ class SkinModel:
         self.before = LogPulse()  # the pulse measured before it
         self.jumped = 0  # 1: the pulse just measured was a model jump
         self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
+        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -92,108 +488,73 @@ class SkinModel:
             self.lc = self.lc_set
         self.rs_ohm = rs_ohm
         self.beta_q16 = beta_q16
+        self.v[_V_RS] = rs_ohm
+        self.v[_V_BETA] = beta_q16
         self.jumped = 0
 
+    @micropython.native
     def rp(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
-        pulse with log2 I = li, log2 T = lt."""
-        lr = ls - mul_q16(li - _L_1MA, self.beta_q16)  # log2 R(I)
-        lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
-        if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
-            lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
-            if lrz > _L_R_MAX:
-                return 0x200000
-            z = exp2q(lz + 0xE0000) if lz > -0x1E0000 else 0  # Q.14, < 2**13
-            v = 16384 - z // 5
-            v = 16384 - ((z * v) >> 14) // 4
-            v = 16384 - ((z * v) >> 14) // 3
-            v = 16384 - ((z * v) >> 14) // 2  # (1 - e^-z) / z in Q.14
-            rz = exp2q(lrz)  # < 2**20
-            return self.rs_ohm + (((rz >> 10) * v + (((rz & 0x3FF) * v) >> 10) + 8) >> 4)  # rounded
-        if lr > _L_R_MAX:
-            return 0x200000
-        if lz > _L_Z12:  # charged: exp(-z) < 2**-17
-            u = 0x8000
-        else:
-            zq = exp2q(lz + 0x100000)  # z in Q.16, < 12 * 2**16
-            lw = -((((zq >> 8) * _L_E) >> 8) + (((zq & 0xFF) * _L_E) >> 16))  # log2 e^-z
-            u = 0x8000 - exp2q(lw + 0xF0000)  # 1 - e^-z in Q.15
-        r = exp2q(lr)
-        return self.rs_ohm + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+        pulse with log2 I = li, log2 T = lt (_root's model, read as an anchor on Rp 0)."""
+        v = self.v
+        v[_V_PLI] = li
+        v[_V_PLT] = lt
+        return _root(v, _K_RP, ls, ls - 1, lc)
 
+    @micropython.viper
+    def _load(self, kind: int, p, o):
+        """Copy into self.v what _root reads for this kind (pulses p, o; the law's line)."""
+        vv = self.v
+        v = ptr32(vv)
+        if kind == _K_LAW or kind == _K_CEIL:  # (the rest: _begin)
+            v[_V_LS] = int(self.ls) + _V_BIAS
+            v[_V_LC] = int(self.lc) + _V_BIAS
+            return
+        v[_V_PLI] = int(p.li)
+        v[_V_PLT] = int(p.lt)
+        v[_V_PRP] = int(p.rp_ohm)
+        v[_V_PRLP] = int(log2q(int(p.rp_ohm)))
+        if kind == _K_PEEL:
+            v[_V_LC] = int(self.lc) + _V_BIAS
+            v[_V_OLS] = int(o.ls) + _V_BIAS
+        elif kind == _K_TWO:
+            v[_V_OLI] = int(o.li)
+            v[_V_OLT] = int(o.lt)
+            v[_V_ORP] = int(o.rp_ohm)
+            v[_V_ORLP] = int(log2q(int(o.rp_ohm)))
+
+    @micropython.viper
+    def _begin(self):
+        """A jump begins: no evaluation yet; the law's values (mE, t_max, Eq. 3) into self.v."""
+        v = ptr32(self.v)
+        v[_V_WORK] = 0
+        v[_V_CUT] = 0
+        v[_V_LME] = int(self.lme)
+        v[_V_LTMAX] = int(self.ltmax)
+        c = self.c
+        v[_V_YQ4] = int(c._y_q4)
+        v[_V_MQN] = int(c._mq_num_pc)
+        v[_V_XS] = -int(c.x_star_ohm)
+        v[_V_MQD] = int(c._mq_den_ohm)
+        v[_V_LCAP] = int(c._line_cap_q4)
+
+    @micropython.native
     def g(self, kind, x, lc, p, o):
         """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
-        if kind == _K_ANCHOR:
-            return self.rp(x, lc, p.li, p.lt) - p.rp_ohm
-        if kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-            ls = o.ls + mul_q16(x, self.beta_q16 - 0x10000)
-            return self.rp(ls, self.lc + x, p.li, p.lt) - p.rp_ohm
-        if kind == _K_LAW:  # 1/16 pC
-            r = self.rp(self.ls, self.lc, self.lme - x, (x << 1) - self.lme)
-            if r > _RP_MAX_OHM:
-                r = _RP_MAX_OHM
-            return self.c._line(r) - exp2q(x + 0x40000)
-        if kind == _K_CEIL:  # 1/16 pC
-            r = self.rp(self.ls, self.lc, x, self.ltmax)
-            if r > _RP_MAX_OHM:
-                r = _RP_MAX_OHM
-            return self.c._line(r) - exp2q(x + self.ltmax + 0x40000)
-        # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
-        r = exp2q(x)
-        y = x - log2q(r - p.rp_ohm + self.rs_ohm)  # log2 (R / (R - Rp + Rs)) = z / ln 2
-        if y <= 0:
-            return NOROOT
-        lc = p.lt - x + _L_1E6 - (log2q(y) - 0x100000 + _L_LN2)
-        ls = x + mul_q16(p.li - _L_1MA, self.beta_q16)
-        self.lc_two = lc
-        return self.rp(ls, lc, o.li, o.lt) - o.rp_ohm
+        self._load(kind, p, o)
+        r = _root(self.v, kind, x, x - 1, lc)
+        if kind == _K_TWO:
+            self.lc_two = self.v[_V_LCTWO] - _V_BIAS
+        return r
 
-    def root(self, kind, a, b, lc, p, o):
+    @micropython.viper
+    def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
         """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
-        to 1/2**16; NOROOT if the ends have one sign or g fails."""
-        fa = self.g(kind, a, lc, p, o)
-        fb = self.g(kind, b, lc, p, o)
-        if fa == NOROOT or fb == NOROOT or (fa > 0) == (fb > 0):
-            return NOROOT if fa != 0 and fb != 0 else (a if fa == 0 else b)
-        side = 0
-        n = 0
-        while b - a > 1 and n < 40:
-            n += 1
-            w = b - a
-            num = fa if fa > 0 else -fa
-            den = num + (fb if fb > 0 else -fb)
-            while den >= 0x40000:
-                den >>= 1
-                num >>= 1
-            if den >= 256 and w <= 0x40000:
-                x = a + muldiv(num, w, den, 0, _MQ_CAP)
-            else:
-                x = a + (w >> 1)
-            if x <= a:
-                x = a + 1
-            elif x >= b:
-                x = b - 1
-            fx = self.g(kind, x, lc, p, o)
-            if fx == NOROOT:
-                return NOROOT
-            if fx == 0:
-                return x
-            if (fx > 0) == (fa > 0):  # Illinois: halve the end kept twice running
-                a = x
-                fa = fx
-                if side < 0:
-                    fb = fb >> 1 if fb > 1 or fb < -1 else fb
-                side = -1
-            else:
-                b = x
-                fb = fx
-                if side > 0:
-                    fa = fa >> 1 if fa > 1 or fa < -1 else fa
-                side = 1
-        if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
-            return a
-        return b
+        to 1/2**16; NOROOT if the ends have one sign or g fails (_load, then _root)."""
+        self._load(kind, p, o)
+        return int(_root(self.v, kind, a, b, lc))
 
+    @micropython.native
     def anchor(self, p, lc):
         """log2 S with which the model (log2 Cp = lc) reads pulse p, or NOROOT.
         R(I) >= Rp - Rs, so S is searched from there up to 16 times more."""
@@ -203,6 +564,7 @@ class SkinModel:
         lo = log2q(d) + mul_q16(p.li - _L_1MA, self.beta_q16)
         return self.root(_K_ANCHOR, lo, lo + 0x40000, lc, p, p)
 
+    @micropython.native
     def law_q(self, lq_k):
         """The law's charge (1/16 pC) on the model skin: on the mE curve up to t_max
         (searched from Q_k/4 to 4 Q_k), else on the line at t_max; NOROOT if none."""
@@ -224,11 +586,12 @@ class SkinModel:
                 if li == NOROOT:
                     return NOROOT
                 return exp2q(li + self.ltmax + 0x40000)
-        lq = self.root(_K_LAW, lq_k - 0x20000, hi, 0, None, None)
+        lq = self.root(_K_LAW, lq_k - 0x20000, hi, lq_k, None, None)  # guess: the charge just delivered
         if lq == NOROOT:
             return NOROOT
         return exp2q(lq + 0x40000)
 
+    @micropython.native
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
@@ -254,13 +617,18 @@ class SkinModel:
                 if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
                     self.lc = lc
 
+    @micropython.native
     def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev):
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
         prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
         that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
         the contact hypothesis is also solved and the smaller charge taken. Returns the
-        status, or -1 when the model has no answer (the caller goes on without it)."""
+        status, or -1 when the model has no answer (the caller goes on without it), -2
+        when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
+        step: never the larger hydration answer nor a search's unfinished value)."""
+        self._begin()
+        v = self.v
         now = self.now
         before = self.before
         now.li = log2q(i_k)
@@ -278,12 +646,12 @@ class SkinModel:
                 self.refit_cp()
         ls = self.anchor(now, self.lc)
         if ls == NOROOT:
-            return -1
+            return -2 if v[_V_CUT] else -1
         self.ls = ls
         lq_k = log2q(q_k)
         q16 = self.law_q(lq_k)
         if q16 == NOROOT:
-            return -1
+            return -2 if v[_V_CUT] else -1
         if q16 > q_k << 4 and not jumped and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
@@ -302,6 +670,8 @@ class SkinModel:
                     else:
                         self.ls = ls1
                         self.lc = lc1
+            if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
+                return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base

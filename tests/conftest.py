@@ -52,10 +52,11 @@ def compile_mpy(mpy_cross: str, src: Path, out_dir: Path, *extra: str) -> Path:
 
 @pytest.fixture(scope="session")
 def core_mpy_dir(tmp_path_factory, mpy_cross) -> Path:
-    """shared/*.py compiled to bytecode .mpy in a folder with no .py beside them."""
+    """shared/*.py compiled to .mpy in a folder with no .py beside them (-march=x64: the
+    core's viper functions are machine code, as on the chip; the rest is bytecode)."""
     d = tmp_path_factory.mktemp("mpy")
     for src in SHARED.glob("*.py"):
-        compile_mpy(mpy_cross, src, d)
+        compile_mpy(mpy_cross, src, d, "-march=x64")
     return d
 
 
