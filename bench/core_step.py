@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 sys.path.insert(0, str(ROOT / "shared"))
 import sensation_core as sc  # noqa: E402
+from steadytouch.simrun import native_march  # noqa: E402
 
 MP_SCRIPT = """
 import time, sensation_core as sc
@@ -97,7 +98,7 @@ def main():
     n = ap.parse_args().n
     with tempfile.TemporaryDirectory() as d:
         for m in ("sensation_core", "fixmath", "fast_step", "skin_model"):  # the core and its modules
-            subprocess.run([str(BIN / "mpy-cross"), "-march=x64", "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")],
+            subprocess.run([str(BIN / "mpy-cross"), f"-march={native_march()}", "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")],
                            check=True)  # -march: the core has viper functions
         Path(d, "b.py").write_text(MP_SCRIPT.replace("NN_PLACEHOLDER", str(n)))
         env = dict(os.environ, MICROPYPATH=d)

@@ -30,6 +30,21 @@ def micropython_exe() -> str:
     return found
 
 
+# mpy-cross -march for this machine's MicroPython unix VM: the core's @micropython.viper
+# functions are machine code, so a .mpy of them is made for the CPU that runs it
+_MARCH = {"x86_64": "x64", "amd64": "x64", "i386": "x86", "i686": "x86", "x86": "x86"}
+
+
+def native_march() -> str:
+    import platform
+
+    m = platform.machine().lower()
+    if m not in _MARCH:
+        raise SimError(f"no mpy-cross native target for this CPU ({platform.machine()}): the core's viper code "
+                       f"compiles for {', '.join(sorted(set(_MARCH)))}; run the tests on an x86 machine")
+    return _MARCH[m]
+
+
 def firmware_module(name: str):
     """One of the firmware's pure-Python modules, imported by CPython."""
     import importlib

@@ -52,11 +52,13 @@ def compile_mpy(mpy_cross: str, src: Path, out_dir: Path, *extra: str) -> Path:
 
 @pytest.fixture(scope="session")
 def core_mpy_dir(tmp_path_factory, mpy_cross) -> Path:
-    """shared/*.py compiled to .mpy in a folder with no .py beside them (-march=x64: the
-    core's viper functions are machine code, as on the chip; the rest is bytecode)."""
+    """shared/*.py compiled to .mpy in a folder with no .py beside them (-march of this
+    CPU: the core's viper functions are machine code, as on the chip; the rest is bytecode)."""
+    from steadytouch.simrun import native_march
+
     d = tmp_path_factory.mktemp("mpy")
     for src in SHARED.glob("*.py"):
-        compile_mpy(mpy_cross, src, d, "-march=x64")
+        compile_mpy(mpy_cross, src, d, f"-march={native_march()}")
     return d
 
 
