@@ -9,6 +9,7 @@ from array import array
 
 import machine
 import rp2
+import uctypes
 from micropython import const
 
 import hid_protocol as hp
@@ -93,6 +94,14 @@ class Board:
         machine.mem32[_ADC_DIV] = (_ADC_CLK_HZ // 1000000 * cfg.ADC_SAMPLE_US - 1) << 8
         self.dma = rp2.DMA()
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
+        # start() programs the channel by its registers (RP2040 datasheet 2.5.7: READ_ADDR,
+        # WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at word 0..3), 3 stores instead of a
+        # keyword call: the read address (the ADC FIFO) never changes, the buffers
+        # never move (MicroPython's heap does not compact).
+        self.dma.config(read=_ADC_FIFO, write=self.adc[0], count=1, ctrl=self.dma.pack_ctrl(
+            enable=False, size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC))
+        self.dma_regs = self.dma.registers
+        self.adc_addr = [uctypes.addressof(self.adc[k]) for k in range(n)]
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.hard_t = cfg.HARD_T_MAX_US
         self.capturing = -1  # the channel whose pulse start() began and wait() has not ended
@@ -183,7 +192,10 @@ class Board:
         mem[_ADC_FCS] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
         while mem[_ADC_FCS] & 0xF0000:  # drain the FIFO
             mem[_ADC_FIFO]
-        self.dma.config(read=_ADC_FIFO, write=self.adc[ch], count=n, ctrl=self.dma_ctrl, trigger=True)
+        regs = self.dma_regs
+        regs[1] = self.adc_addr[ch]
+        regs[2] = n
+        regs[3] = self.dma_ctrl  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
         self.capturing = ch
         sm = self.sms[ch]
         mem[_ADC_CS] = _CS_EN | sel | _CS_START_MANY  # the gate rises a few us later: nothing between

@@ -59,33 +59,30 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
 @micropython.viper
 def _peak3(buf, n: int) -> int:
     """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
-    12-bit ADC counts, n >= 3). Viper: machine code on the rp2 (mpy-cross
-    -march=armv6m) and in the unix VM; no Python objects, nothing allocated.
-    Every value is < 4096, so 32-bit (ARM) and 64-bit (x64) words agree."""
+    12-bit ADC counts, n >= 3). The median of (a, b, c) is the largest of
+    min(a, b), min(a, c), min(b, c), so the largest median is the largest min
+    over every pair of samples at most 2 apart. Scanned from the end: the peak
+    is near the falling edge, and a sample no larger than the best so far cannot
+    improve it (one comparison). Viper: machine code on the rp2 (mpy-cross
+    -march=armv6m) and in the unix VM; nothing allocated. Every value is < 4096,
+    so 32-bit (ARM) and 64-bit (x64) words agree."""
     p = ptr16(buf)
     best = 0
-    a = int(p[0])
-    b = int(p[1])
-    k = 2
-    while k < n:
+    k = n - 1
+    while k >= 2:
         x = int(p[k])
-        if a > b:
-            lo = b
-            hi = a
-        else:
-            lo = a
-            hi = b
-        if x >= hi:
-            m = hi
-        elif x <= lo:
-            m = lo
-        else:
-            m = x
-        if m > best:
-            best = m
-        a = b
-        b = x
-        k += 1
+        if x > best:
+            y = int(p[k - 1])
+            if y > best:
+                best = y if y < x else x
+            y = int(p[k - 2])
+            if y > best:
+                best = y if y < x else x
+        k -= 1
+    x = int(p[1])
+    y = int(p[0])
+    if x > best and y > best:
+        best = y if y < x else x
     return best
 
 
@@ -109,6 +106,7 @@ class Channel:
         self.di = 0  # pulse delivered this frame (telemetry)
         self.dt = 0
         self.n_samples = 0  # monitor samples captured across this frame's pulse
+        self.adc = None  # into this buffer (the board's, bound by the Stimulator)
         self.vp = 0
         self.rp = 0
         self.held = False
@@ -149,6 +147,8 @@ class Stimulator:
         lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
         self.chans = [Channel(k, lim) for k in range(n)]
+        for c in self.chans:
+            c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -158,6 +158,8 @@ class Stimulator:
         self.overruns = 0
         self.loop_us = 0
         self.frame_t = 0
+        self.sat_overruns = 0
+        self.sat_loop_us = 0
         if keepalive_ms is None:
             keepalive_ms = hp.KEEPALIVE_DEFAULT_MS
         if keepalive_ms and not hp.KEEPALIVE_MIN_MS <= keepalive_ms <= hp.KEEPALIVE_MAX_MS:
@@ -233,6 +235,8 @@ class Stimulator:
         k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
+        self.sat_overruns = hp.sat16(self.overruns)  # the same in every report of this frame
+        self.sat_loop_us = hp.sat16(self.loop_us)
         board.feed_watchdog()
         self._enter()  # one heap-locked section for the pulses and their control
         if self.keepalive_ms:  # before any pulse: none fires once the host is overdue
@@ -335,7 +339,7 @@ class Stimulator:
         samples: the smallest; a low reading can only lower the charge). Rp from
         Vp and the delivered current (0: no pulse)."""
         n = c.n_samples
-        buf = self.board.adc[c.ch]
+        buf = c.adc
         if n <= 0:
             v = 0
         elif n < 3:
@@ -449,8 +453,8 @@ class Stimulator:
         struct.pack_into(_TEL_FMT, self.tel[c.ch], 0, hp.REP_TELEMETRY, c.ch, ctl.mode, c.stop, self.seq,
                          self.frame_t, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
                          ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
-                         ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, hp.sat16(self.overruns), hp.sat16(self.loop_us),
-                         f, self.rate_hz)
+                         ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, self.sat_overruns, self.sat_loop_us, f,
+                         self.rate_hz)
         self.seq = (self.seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):
