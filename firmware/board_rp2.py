@@ -215,13 +215,15 @@ class Board:
 
     def _abort_capture(self):
         """The ADC stopped and the DMA channel aborted (RP2040 datasheet 2.5.5.3:
-        CHAN_ABORT), e.g. when the channel being captured is stopped mid-pulse."""
-        mem = machine.mem32
-        mem[_ADC_CS] = _CS_EN | self.ainsel[self.capturing]
-        bit = 1 << self.dma.channel
-        mem[_DMA_CHAN_ABORT] = bit
-        while mem[_DMA_CHAN_ABORT] & bit:
-            pass
+        CHAN_ABORT), e.g. when the channel being captured is stopped mid-pulse.
+        Waits for the channel's BUSY flag to clear (rp2040js does not model the
+        CHAN_ABORT read-back), at most a bounded number of polls: a stop never hangs;
+        the next start() programs the channel afresh anyway."""
+        machine.mem32[_ADC_CS] = _CS_EN | self.ainsel[self.capturing]
+        machine.mem32[_DMA_CHAN_ABORT] = 1 << self.dma.channel
+        k = 0
+        while self.dma.active() and k < 100:
+            k += 1
         self.capturing = -1
 
     def fire(self, ch, t_us):
