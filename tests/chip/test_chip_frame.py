@@ -20,10 +20,9 @@ reps = [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), 
 for rep in reps:
     assert s.handle(rep, time.ticks_us()) == hp.RES_OK, rep[0]
 s.sync_outputs()
-s.run(2)
 o0 = s.overruns
 loops = []
-for f in range({frames}):
+for f in range({frames} + 2):
     s.run(1)
     loops.append(s.loop_us)
 print((s.overruns - o0, s.errors, max(loops), [c.stop for c in s.chans], [c.dt for c in s.chans]))
