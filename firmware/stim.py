@@ -143,6 +143,9 @@ class Stimulator:
         if not hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ:
             raise ValueError("rate_hz=%d out of range [%d, %d]" % (rate, hp.RATE_MIN_HZ, hp.RATE_MAX_HZ))
         t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))  # the worst-case frame fits its period
+        if t_max < hp.T_FLOOR_US:
+            raise ValueError("%d channels at %d Hz cannot fit a frame: at most %d Hz (hid_protocol.frame_fits)"
+                             % (n, rate, hp.rate_max_fitting(n, hp.T_FLOOR_US)))
         t_min = max(hp.T_FLOOR_US, min(cfg.T_MIN_US, t_max))
         lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
@@ -286,9 +289,13 @@ class Stimulator:
         self._encode_telemetry(c)
 
     def _serve_commands(self, now):
+        """The host's commands: the first waiting one always, more while a command's
+        time (hp.FRAME_CMD_US) remains before the next deadline; the rest wait."""
         board = self.board
+        clk = self.clock
+        end = clk.ticks_add(now, self.period_us - hp.FRAME_CMD_US)
         m = 0
-        while m < _MAX_CMDS_PER_FRAME and board.recv(self.rx):
+        while m < _MAX_CMDS_PER_FRAME and (m == 0 or clk.ticks_diff(end, clk.ticks_us()) > 0) and board.recv(self.rx):
             self._enter()
             self.handle(self.rx, now)
             self._leave()

@@ -399,12 +399,12 @@ class Commands:
         n = self.frame[0]
         if hp.frame_fits(rate_hz, n, t_max_us):
             return
-        rule = (f"rate x channels x (t_max + {hp.FRAME_COMPUTE_US_PER_CH} us compute) must stay within 1 s, "
-                "as the device checks")
+        rule = "rate x hid_protocol.frame_us(channels, t_max) must stay within 1 s, as the device checks"
         if what == "rate":
-            top = 1000000 // (n * (t_max_us + hp.FRAME_COMPUTE_US_PER_CH))
+            lower = hp.t_max_fitting(rate_hz, n)
+            how = f", or lower t_max_us to {lower} first" if lower >= hp.T_FLOOR_US else ""
             raise CommandError(f"rate_hz={rate_hz} does not fit the frame with {n} channels and t_max_us={t_max_us}: "
-                               f"at most {top} Hz, or lower t_max_us to {hp.t_max_fitting(rate_hz, n)} first ({rule})")
+                               f"at most {hp.rate_max_fitting(n, t_max_us)} Hz{how} ({rule})")
         raise CommandError(f"t_max_us={t_max_us} does not fit the frame with {n} channels at {rate_hz} Hz: at most "
                            f"{hp.t_max_fitting(rate_hz, n)} us ({rule})")
 
