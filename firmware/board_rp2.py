@@ -10,6 +10,7 @@ from array import array
 
 import machine
 import rp2
+import uctypes
 from micropython import const
 
 import dac_mcp4822
@@ -27,6 +28,7 @@ _FCS_DREQ_EN = const(0x8)
 _FCS_THRESH_1 = const(0x1000000)
 _FCS_ERR_FLAGS = const(0xC00)  # UNDER | OVER, write 1 to clear
 _DREQ_ADC = const(36)
+_DMA_CHAN_ABORT = const(0x50000444)
 _ADC_CLK_HZ = const(48000000)
 _T_FLOOR_US = hp.T_FLOOR_US
 # Instructions executed directly by stop(), encoded once at import (nothing per call)
@@ -115,7 +117,17 @@ class Board:
         machine.mem32[_ADC_DIV] = (_ADC_CLK_HZ // 1000000 * cfg.ADC_SAMPLE_US - 1) << 8
         self.dma = rp2.DMA()
         self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
+        # start() programs the channel by its registers (RP2040 datasheet 2.5.7: READ_ADDR,
+        # WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at word 0..3), 3 stores instead of a
+        # keyword call: the read address (the ADC FIFO) never changes, the buffers
+        # never move (MicroPython's heap does not compact).
+        self.dma.config(read=_ADC_FIFO, write=self.adc[0], count=1, ctrl=self.dma.pack_ctrl(
+            enable=False, size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC))
+        self.dma_regs = self.dma.registers
+        self.adc_addr = [uctypes.addressof(self.adc[k]) for k in range(n)]
         self.overhead = pio_gate.GATE_OVERHEAD_US
+        self.hard_t = cfg.HARD_T_MAX_US
+        self.capturing = -1  # the channel whose pulse start() began and wait() has not ended
         self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
         self.usb = self._usb()
         # last, once everything above worked: a failed set-up must not turn into a reset loop
@@ -163,6 +175,8 @@ class Board:
         doing (waiting, mid-pulse, a word still in its FIFO). Allocates nothing."""
         sm = self.sms[ch]
         sm.active(0)
+        if self.capturing == ch:
+            self._abort_capture()
         sm.exec(_PULL_NOBLOCK)  # drain the 4-word TX FIFO: a queued word must not fire later
         sm.exec(_PULL_NOBLOCK)
         sm.exec(_PULL_NOBLOCK)
@@ -179,29 +193,68 @@ class Board:
     def feed_watchdog(self):
         self.wdt.feed()
 
-    def fire(self, ch, t_us):
-        """One pulse of t_us at the set amplitude, the monitor captured across it.
+    def start(self, ch, t_us):
+        """Start one pulse of t_us at the set amplitude and the capture of the
+        monitor across it; returns at once with the number of samples the capture
+        will hold. The PIO gate times the pulse and the DMA fills adc[ch] while
+        the CPU goes on; wait() ends the capture. One capture at a time (one ADC):
+        a capture still running is waited for first. Allocates nothing.
 
         The board's own last check: t_us outside [T_FLOOR_US, HARD_T_MAX_US] is
         refused (no pulse, 0 samples, counted in `refused`); the PIO program
         bounds the gate at HARD_T_MAX_US whatever word reaches it."""
-        if not _T_FLOOR_US <= t_us <= self.cfg.HARD_T_MAX_US:
+        if self.capturing >= 0:
+            self.wait()
+        if not _T_FLOOR_US <= t_us <= self.hard_t:
             self.refused += 1
             return 0
         n = t_us // self.dt_us + 2  # a few samples past the falling edge
         if n > self.n_max:
             n = self.n_max
         mem = machine.mem32
-        mem[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        sel = self.ainsel[ch]
+        mem[_ADC_CS] = _CS_EN | sel
         mem[_ADC_FCS] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
         while mem[_ADC_FCS] & 0xF0000:  # drain the FIFO
             mem[_ADC_FIFO]
-        self.dma.config(read=_ADC_FIFO, write=self.adc[ch], count=n, ctrl=self.dma_ctrl, trigger=True)
-        mem[_ADC_CS] = _CS_EN | self.ainsel[ch] | _CS_START_MANY
-        self.sms[ch].put(t_us - self.overhead)
+        regs = self.dma_regs
+        regs[1] = self.adc_addr[ch]
+        regs[2] = n
+        regs[3] = self.dma_ctrl  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
+        self.capturing = ch
+        sm = self.sms[ch]
+        mem[_ADC_CS] = _CS_EN | sel | _CS_START_MANY  # the gate rises a few us later: nothing between
+        sm.put(t_us - self.overhead)
+        return n
+
+    def wait(self):
+        """Until the capture start() began is complete (the pulse is over: the
+        capture runs past its falling edge); the ADC stops. Allocates nothing."""
+        ch = self.capturing
+        if ch < 0:
+            return
         while self.dma.active():
             pass
-        mem[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        machine.mem32[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        self.capturing = -1
+
+    def _abort_capture(self):
+        """The ADC stopped and the DMA channel aborted (RP2040 datasheet 2.5.5.3:
+        CHAN_ABORT), e.g. when the channel being captured is stopped mid-pulse.
+        Waits for the channel's BUSY flag to clear (rp2040js does not model the
+        CHAN_ABORT read-back), at most a bounded number of polls: a stop never hangs;
+        the next start() programs the channel afresh anyway."""
+        machine.mem32[_ADC_CS] = _CS_EN | self.ainsel[self.capturing]
+        machine.mem32[_DMA_CHAN_ABORT] = 1 << self.dma.channel
+        k = 0
+        while self.dma.active() and k < 100:
+            k += 1
+        self.capturing = -1
+
+    def fire(self, ch, t_us):
+        """One whole pulse (start() then wait()); returns the sample count."""
+        n = self.start(ch, t_us)
+        self.wait()
         return n
 
     def send(self, buf):

@@ -3,12 +3,20 @@
 # the interface documented in docs/hardware.md), so this module runs unchanged
 # on the rp2 and in the MicroPython unix VM with the simulated board.
 #
-# Every firmware section of the frame runs between heap_lock()/heap_unlock()
-# (on the device too): it allocates nothing, and large function frames go on
-# the C stack instead of the heap. Board calls sit between those sections.
-# A board whose interrupts schedule Python callbacks that allocate (the rp2's
-# USB stack) provides irq_off()/irq_on(state): a section then runs with
-# interrupts held off, so no such callback can land inside it.
+# The frame (Stimulator.frame) reads as the paper's Fig. 3 loop, channel by
+# channel: pulse (the hard-limit check right before the gate opens), then
+# measure -> supervise -> control -> output -> report, one short method each.
+# On the rp2 the PIO gate and the ADC -> DMA capture deliver a pulse by
+# themselves: channel k's pulse runs while the CPU does channel k-1's work.
+#
+# The firmware part of the frame runs between heap_lock()/heap_unlock() (on the
+# device too): it allocates nothing, and large function frames go on the C
+# stack instead of the heap. The rp2 board's pulse, output and stop calls
+# allocate nothing and run inside that section; the simulated board's calls
+# (floats) run between sections. A board whose interrupts schedule Python
+# callbacks that allocate (the rp2's USB stack) provides irq_off()/irq_on(state):
+# a section then runs with interrupts held off, so no such callback can land
+# inside it (the USB controller itself goes on: PIO, DMA and timers need no CPU).
 import struct
 
 import sensation_core as sc
@@ -36,47 +44,45 @@ FW_VERSION = (0, 1, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
-# Telemetry bytes O_I..O_LOOP+1 in one struct.pack_into (allocation-free, also on
-# the rp2: every value is a small int): the same bytes as put_u16/put_i32 field by
-# field, in a twentieth of the calls. The offsets are checked at import.
-_TEL_FMT = "<HHiiiiiHHHHH"
-if not (hp.O_T == hp.O_I + 2 and hp.O_VP == hp.O_I + 4 and hp.O_RP == hp.O_I + 8 and hp.O_ME == hp.O_I + 12
-        and hp.O_MQT == hp.O_I + 16 and hp.O_MQL == hp.O_I + 20 and hp.O_STATUS == hp.O_I + 24
-        and hp.O_NEXT_I == hp.O_I + 26 and hp.O_NEXT_T == hp.O_I + 28 and hp.O_OVERRUNS == hp.O_I + 30
-        and hp.O_LOOP == hp.O_I + 32 and hp.O_TIME == hp.O_SEQ + 4):
+# A whole telemetry report (bytes 0..O_RATE; the rest stays 0) in one
+# struct.pack_into, allocation-free also on the rp2 (every value is a small int):
+# the same bytes as writing the fields one by one, in one call. Checked at import.
+_TEL_FMT = "<BBBBiiHHiiiiiHHHHHBB"
+if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 and hp.O_SEQ == 4
+        and hp.O_TIME == 8 and hp.O_I == 12 and hp.O_T == 14 and hp.O_VP == 16 and hp.O_RP == 20
+        and hp.O_ME == 24 and hp.O_MQT == 28 and hp.O_MQL == 32 and hp.O_STATUS == 36 and hp.O_NEXT_I == 38
+        and hp.O_NEXT_T == 40 and hp.O_OVERRUNS == 42 and hp.O_LOOP == 44 and hp.O_FLAGS == 46
+        and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 
 
 @micropython.viper
 def _peak3(buf, n: int) -> int:
     """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
-    12-bit ADC counts, n >= 3). Viper: machine code on the rp2 (mpy-cross
-    -march=armv6m) and in the unix VM; no Python objects, nothing allocated.
-    Every value is < 4096, so 32-bit (ARM) and 64-bit (x64) words agree."""
+    12-bit ADC counts, n >= 3). The median of (a, b, c) is the largest of
+    min(a, b), min(a, c), min(b, c), so the largest median is the largest min
+    over every pair of samples at most 2 apart. Scanned from the end: the peak
+    is near the falling edge, and a sample no larger than the best so far cannot
+    improve it (one comparison). Viper: machine code on the rp2 (mpy-cross
+    -march=armv6m) and in the unix VM; nothing allocated. Every value is < 4096,
+    so 32-bit (ARM) and 64-bit (x64) words agree."""
     p = ptr16(buf)
     best = 0
-    a = int(p[0])
-    b = int(p[1])
-    k = 2
-    while k < n:
+    k = n - 1
+    while k >= 2:
         x = int(p[k])
-        if a > b:
-            lo = b
-            hi = a
-        else:
-            lo = a
-            hi = b
-        if x >= hi:
-            m = hi
-        elif x <= lo:
-            m = lo
-        else:
-            m = x
-        if m > best:
-            best = m
-        a = b
-        b = x
-        k += 1
+        if x > best:
+            y = int(p[k - 1])
+            if y > best:
+                best = y if y < x else x
+            y = int(p[k - 2])
+            if y > best:
+                best = y if y < x else x
+        k -= 1
+    x = int(p[1])
+    y = int(p[0])
+    if x > best and y > best:
+        best = y if y < x else x
     return best
 
 
@@ -101,6 +107,8 @@ class Channel:
         self.dt = 0
         self.ai = 0  # the current the amplitude output was last set for (0: stopped)
         self.ad = 0  # what the board said that setting delivers (board.set_amplitude's answer)
+        self.n_samples = 0  # monitor samples captured across this frame's pulse
+        self.adc = None  # into this buffer (the board's, bound by the Stimulator)
         self.vp = 0
         self.rp = 0
         self.held = False
@@ -137,10 +145,15 @@ class Stimulator:
         if not hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ:
             raise ValueError("rate_hz=%d out of range [%d, %d]" % (rate, hp.RATE_MIN_HZ, hp.RATE_MAX_HZ))
         t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))  # the worst-case frame fits its period
+        if t_max < hp.T_FLOOR_US:
+            raise ValueError("%d channels at %d Hz cannot fit a frame: at most %d Hz (hid_protocol.frame_fits)"
+                             % (n, rate, hp.rate_max_fitting(n, hp.T_FLOOR_US)))
         t_min = max(hp.T_FLOOR_US, min(cfg.T_MIN_US, t_max))
         lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
         self.chans = [Channel(k, lim) for k in range(n)]
+        for c in self.chans:
+            c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -150,6 +163,8 @@ class Stimulator:
         self.overruns = 0
         self.loop_us = 0
         self.frame_t = 0
+        self.sat_overruns = 0
+        self.sat_loop_us = 0
         if keepalive_ms is None:
             keepalive_ms = hp.KEEPALIVE_DEFAULT_MS
         if keepalive_ms and not hp.KEEPALIVE_MIN_MS <= keepalive_ms <= hp.KEEPALIVE_MAX_MS:
@@ -157,7 +172,8 @@ class Stimulator:
                              % (keepalive_ms, hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
         self.keepalive_ms = keepalive_ms
         self.last_host = clock.ticks_us()
-        self.tx = bytearray(hp.REPORT_LEN)
+        self.tx = bytearray(hp.REPORT_LEN)  # replies to commands
+        self.tel = [bytearray(hp.REPORT_LEN) for _ in range(n)]  # each channel's telemetry, sent after the pulses
         self.rx = bytearray(hp.REPORT_LEN)
         self.acks = 0
         self.n_cmds = 0
@@ -165,6 +181,14 @@ class Stimulator:
         self._irq_off = getattr(board, "irq_off", None)  # bound once here: calling it allocates nothing
         self._irq_on = getattr(board, "irq_on", None)
         self._irq = 0
+        # A board that delivers pulses by itself has start() and wait(): the CPU goes
+        # on while the gate is open, and its start, wait, set_amplitude and stop
+        # allocate nothing (they run inside the frame's heap-locked section; the
+        # rp2's are checked on the emulated chip). Otherwise (the simulated board)
+        # fire() delivers the whole pulse before it returns, outside the section.
+        self._overlap = hasattr(board, "start") and hasattr(board, "wait")
+        self._start = board.start if self._overlap else None  # bound once: calls allocate nothing
+        self._wait = board.wait if self._overlap else None
         self.started = False
         self.deadline = 0
         self.errors = 0
@@ -209,28 +233,71 @@ class Stimulator:
                 frames -= 1
 
     def frame(self, now):
-        """One frame: pulse, measure and control every channel; serve commands."""
+        """One frame. Every channel in turn: its pulse (hard limits checked right
+        before the gate opens), then measure -> supervise -> control -> output ->
+        report. On a board that delivers pulses by itself (the rp2: PIO gate,
+        ADC -> DMA capture) channel k's pulse runs while the CPU does channel
+        k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
+        self.sat_overruns = hp.sat16(self.overruns)  # the same in every report of this frame
+        self.sat_loop_us = hp.sat16(self.loop_us)
         board.feed_watchdog()
+        self._enter()  # one heap-locked section for the pulses and their control
+        if self.keepalive_ms:  # before any pulse: none fires once the host is overdue
+            self._check_keepalive(now)
+        n = self.n
         k = 0
-        while k < self.n:
+        while k < n:
             c = self.chans[k]
-            self._enter()
-            if k == 0 and self.keepalive_ms:  # before any pulse: none fires once the host is overdue
-                self._check_keepalive(now)
-            ok = self._pre_pulse(c)
-            self._leave()
-            n = board.fire(k, c.t) if ok else 0
-            self._enter()
-            self._post_pulse(c, self._peak_mv(board.adc[k], n))
-            self._encode_telemetry(c)
-            self._leave()
-            self._output(k)  # the amplitude settles during the rest of the frame
-            board.send(self.tx)
+            self._pulse(k, c)  # on the rp2 the gate is open when this returns
+            if k:
+                self._channel(self.chans[k - 1])  # meanwhile: the previous channel
+            if c.n_samples and self._overlap:
+                self._wait()  # until channel k's capture is complete
             k += 1
+        self._channel(self.chans[n - 1])
+        self._leave()
+        k = 0
+        while k < n:
+            board.send(self.tel[k])
+            k += 1
+        self._serve_commands(now)
+        self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
+
+    def _pulse(self, k, c):
+        """Channel k's pulse for this frame, if the last check allows it."""
+        c.n_samples = 0
+        if not self._pre_pulse(c):
+            return
+        if self._overlap:
+            c.n_samples = self._start(k, c.t)
+        else:  # the simulated board allocates: its calls run outside the heap-locked section
+            self._leave()
+            c.n_samples = self.board.fire(k, c.t)
+            self._enter()
+
+    def _channel(self, c):
+        """A channel's work after its pulse, in the order of the paper's Fig. 3 loop."""
+        self._measure(c)
+        if self._supervise(c):
+            self._control(c)
+        if self._overlap:
+            self._output(c.ch)  # the amplitude settles during the rest of the frame
+        else:
+            self._leave()
+            self._output(c.ch)
+            self._enter()
+        self._encode_telemetry(c)
+
+    def _serve_commands(self, now):
+        """The host's commands: the first waiting one always, more while a command's
+        time (hp.FRAME_CMD_US) remains before the next deadline; the rest wait."""
+        board = self.board
+        clk = self.clock
+        end = clk.ticks_add(now, self.period_us - hp.FRAME_CMD_US)
         m = 0
-        while m < _MAX_CMDS_PER_FRAME and board.recv(self.rx):
+        while m < _MAX_CMDS_PER_FRAME and (m == 0 or clk.ticks_diff(end, clk.ticks_us()) > 0) and board.recv(self.rx):
             self._enter()
             self.handle(self.rx, now)
             self._leave()
@@ -238,7 +305,6 @@ class Stimulator:
             m += 1
         if m:  # outputs follow the commands at once
             self.sync_outputs()
-        self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     def _enter(self):
         """Start a firmware section: nothing in it may allocate (raises MemoryError)."""
@@ -284,51 +350,59 @@ class Stimulator:
         c.dt = c.t
         return True
 
-    def _peak_mv(self, buf, n):
-        """Peak of the captured pulse in mV: the largest median of 3 neighbouring
-        samples, so a single-sample spike cannot set it. Fewer than 3 samples:
-        the smallest (a low reading can only lower the charge)."""
+    def _measure(self, c):
+        """Vp: the peak of the captured pulse in mV, the largest median of 3
+        neighbouring samples, so a single-sample spike cannot set it (fewer than 3
+        samples: the smallest; a low reading can only lower the charge). Rp from
+        Vp and the delivered current (0: no pulse)."""
+        n = c.n_samples
+        buf = c.adc
         if n <= 0:
-            return 0
-        if n < 3:
+            v = 0
+        elif n < 3:
             v = buf[0]
             if n == 2 and buf[1] < v:
                 v = buf[1]
-            return v * self.uv_per_count // 1000
-        return _peak3(buf, n) * self.uv_per_count // 1000
-
-    def _post_pulse(self, c, vp):
+        else:
+            v = _peak3(buf, n)
+        vp = v * self.uv_per_count // 1000
         c.vp = vp
+        c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0
+
+    def _supervise(self, c):
+        """The electrode rules on this pulse's Rp: off or shorted latches the
+        channel. True if the controller may act on the measurement."""
         if c.di == 0:
-            c.rp = 0
-            return
-        rp = sc.rp_from_vp(vp, c.di)
-        c.rp = rp
-        if vp >= self.vp_off_mv or rp > sc.RP_MAX_OHM:
+            return False
+        rp = c.rp
+        if c.vp >= self.vp_off_mv or rp > sc.RP_MAX_OHM:
             self._latch(c, hp.STOP_ELECTRODE_OFF)
             c.ctl.stop(sc.ST_RP_HIGH)
-            return
+            return False
         if rp < sc.RP_MIN_OHM:
             self._latch(c, hp.STOP_RP_FAULT)
             c.ctl.stop(sc.ST_RP_LOW)
-            return
+            return False
+        return True
+
+    def _control(self, c):
+        """The controller's next pulse; one measurement may lower the charge,
+        raising it takes two in a row (the smaller of the two proposals)."""
         ctl = c.ctl
         if c.calibrating:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
-            ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
+            ctl.calibrate(c.i0, c.t0, c.rp, c.x, c.y)
             c.calibrating = False
         else:
             ctl.delivered(c.di, c.dt)  # a held proposal was not what was measured
-            if ctl.update(rp) & sc.ST_FAULT_MASK:
+            if ctl.update(c.rp) & sc.ST_FAULT_MASK:
                 self._latch(c, hp.STOP_RP_FAULT)
                 return
         ni = ctl.i_ua
         nt = ctl.t_us
-        # one measurement may lower the charge, raising it takes two in a row
-        q_now = c.i * c.t
-        if ni * nt <= q_now:
+        if ni * nt <= c.i * c.t:
             c.held = False
         elif c.held:
-            if c.pi * c.pt < ni * nt:  # of the two proposals, the smaller charge
+            if c.pi * c.pt < ni * nt:
                 ni = c.pi
                 nt = c.pt
             c.held = False
@@ -384,26 +458,24 @@ class Stimulator:
         return b
 
     def _encode_telemetry(self, c):
-        b = self._head(hp.REP_TELEMETRY)
+        """Channel c's telemetry into its own report buffer (sent after the pulses)."""
         ctl = c.ctl
-        b[hp.O_CH] = c.ch
-        b[hp.O_MODE] = ctl.mode
-        b[hp.O_STOP] = c.stop
-        # u16 fields take the low 16 bits as put_u16 does; the i32 fields are within +-2**30
-        struct.pack_into(_TEL_FMT, b, hp.O_I, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
-                         ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
-                         ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, hp.sat16(self.overruns), hp.sat16(self.loop_us))
         f = 0
         if c.armed:
-            f |= hp.FLAG_ARMED
+            f = hp.FLAG_ARMED
         if c.held:
             f |= hp.FLAG_HELD
         if self.keepalive_ms:
             f |= hp.FLAG_KEEPALIVE
         if c.cal_pulse:
             f |= hp.FLAG_CALIBRATING
-        b[hp.O_FLAGS] = f
-        b[hp.O_RATE] = self.rate_hz
+        # u16 fields take the low 16 bits as put_u16 does; the i32 fields are within +-2**30
+        struct.pack_into(_TEL_FMT, self.tel[c.ch], 0, hp.REP_TELEMETRY, c.ch, ctl.mode, c.stop, self.seq,
+                         self.frame_t, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
+                         ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
+                         ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, self.sat_overruns, self.sat_loop_us, f,
+                         self.rate_hz)
+        self.seq = (self.seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):
         b = self._head(hp.REP_ACK)

@@ -147,12 +147,15 @@ class Device:
             ):
                 if not rep.ok:
                     raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}")
+                self.cmds.applied(report)  # a new rate or t_max: the host's frame check follows it
                 return rep
             self._pending.append(rep)
 
     # convenience wrappers, each waiting for its ack
     def info(self) -> Info:
-        return self.command(self.cmds.get_info())
+        info = self.command(self.cmds.get_info())
+        self.cmds.know(info)  # from now on a rate or t_max that cannot fit is refused on the host
+        return info
 
     def calibration(self, ch: int) -> CalInfo:
         return self.command(self.cmds.get_info(ch))

@@ -372,9 +372,41 @@ class Commands:
     `Commands(check=False)` skips the checks: only for tests of the device's own
     refusals (the values are then masked to their field widths on the wire)."""
 
-    def __init__(self, check: bool = True):
+    def __init__(self, check: bool = True, frame: tuple[int, int, int] | None = None):
         self.tag = 0
         self.check = check
+        # the device's (n_channels, rate_hz, t_max_us), once known (know(), applied()):
+        # a rate or t_max whose worst-case frame cannot fit is then refused here, as the
+        # device refuses it (hid_protocol.frame_fits); unknown: the device's answer says
+        self.frame = frame
+
+    def know(self, info: "Info") -> None:
+        """What a GET_INFO answer says of the frame: channels, rate and soft t_max."""
+        self.frame = (info.n_channels, info.rate_hz, info.t_max_us)
+
+    def applied(self, report: bytes) -> None:
+        """The device acknowledged `report` (RES_OK): follow a new rate or t_max."""
+        if self.frame is None:
+            return
+        n, rate, t_max = self.frame
+        if report[0] == hp.CMD_SET_MODE and report[hp.O_ARG + 1]:
+            rate = report[hp.O_ARG + 1]
+        elif report[0] == hp.CMD_SET_LIMITS:
+            t_max = hp.get_u16(report, hp.O_ARG + 6)
+        self.frame = (n, rate, t_max)
+
+    def _fits(self, rate_hz: int, t_max_us: int, what: str) -> None:
+        n = self.frame[0]
+        if hp.frame_fits(rate_hz, n, t_max_us):
+            return
+        rule = "rate x hid_protocol.frame_us(channels, t_max) must stay within 1 s, as the device checks"
+        if what == "rate":
+            lower = hp.t_max_fitting(rate_hz, n)
+            how = f", or lower t_max_us to {lower} first" if lower >= hp.T_FLOOR_US else ""
+            raise CommandError(f"rate_hz={rate_hz} does not fit the frame with {n} channels and t_max_us={t_max_us}: "
+                               f"at most {hp.rate_max_fitting(n, t_max_us)} Hz{how} ({rule})")
+        raise CommandError(f"t_max_us={t_max_us} does not fit the frame with {n} channels at {rate_hz} Hz: at most "
+                           f"{hp.t_max_fitting(rate_hz, n)} us ({rule})")
 
     def _next(self) -> int:
         self.tag = (self.tag + 1) & 0xFF
@@ -400,6 +432,8 @@ class Commands:
         v = (i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
         if self.check:
             v = check_limits(*v)
+            if self.frame is not None:
+                self._fits(self.frame[1], v[3], "t_max")
         return bytes(hp.cmd_set_limits(bytearray(64), *v, self._next()))
 
     def set_skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL) -> bytes:
@@ -413,6 +447,8 @@ class Commands:
     def set_mode(self, mode, rate_hz=0) -> bytes:
         if self.check:
             mode, rate_hz = check_mode(mode, rate_hz)
+            if rate_hz and self.frame is not None:
+                self._fits(rate_hz, self.frame[2], "rate")
         return bytes(hp.cmd_set_mode(bytearray(64), mode & 0xFF, rate_hz & 0xFF, self._next()))
 
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS) -> bytes:

@@ -67,21 +67,50 @@ KEEPALIVE_MAX_MS = const(10000)
 KEEPALIVE_DEFAULT_MS = const(1000)
 RATE_MIN_HZ = const(10)
 RATE_MAX_HZ = const(100)
-# The frame's worst case must fit its period: rate x channels x (t_max +
-# FRAME_COMPUTE_US_PER_CH) <= 1 s. A SET_MODE rate or SET_LIMITS t_max that
-# breaks it is refused (RES_OUT_OF_RANGE); at boot the default soft t_max is
-# lowered to the largest that fits (docs/performance.md).
-FRAME_COMPUTE_US_PER_CH = const(1000)
+# The frame's worst case must fit its period: rate x frame_us(n, t_max) <= 1 s.
+# On the rp2 channel k's work runs while channel k+1's pulse is delivered, so a
+# frame is: n pulses of up to t_max, each started FRAME_GAP_US after the one
+# before; a pulse shorter than the previous channel's work (FRAME_WORK_US at
+# most) stretches to it; then the last channel's work and the frame's own
+# work (FRAME_TAIL_US). Host commands come after that: the first waiting one is
+# always served, another only while FRAME_CMD_US remain before the next
+# deadline (a frame with a command can overrun by one command, counted).
+# Figures: the worst measured on the
+# emulated RP2040 in MODE_FAST without a skin model, with a margin
+# (docs/performance.md, "The frame on the emulated RP2040"). A SET_MODE rate or
+# SET_LIMITS t_max that breaks the rule is refused (RES_OUT_OF_RANGE); at boot
+# the default soft t_max is lowered to the largest that fits.
+FRAME_GAP_US = const(300)
+FRAME_WORK_US = const(1800)
+FRAME_TAIL_US = const(2200)
+FRAME_CMD_US = const(1500)
+
+
+def frame_us(n_channels, t_max_us):
+    """The longest frame of n_channels pulses of at most t_max_us (us)."""
+    w = t_max_us if t_max_us > FRAME_WORK_US else FRAME_WORK_US
+    return n_channels * FRAME_GAP_US + t_max_us + (n_channels - 1) * w + FRAME_TAIL_US
 
 
 def frame_fits(rate_hz, n_channels, t_max_us):
-    """True if n_channels pulses of t_max_us plus their compute fit one frame at rate_hz."""
-    return rate_hz * n_channels * (t_max_us + FRAME_COMPUTE_US_PER_CH) <= 1000000
+    """True if the longest frame of n_channels pulses of t_max_us fits the period at rate_hz."""
+    return rate_hz * frame_us(n_channels, t_max_us) <= 1000000
 
 
 def t_max_fitting(rate_hz, n_channels):
-    """Longest t_max (us) that frame_fits() accepts at rate_hz with n_channels."""
-    return 1000000 // (rate_hz * n_channels) - FRAME_COMPUTE_US_PER_CH
+    """Longest t_max (us) that frame_fits() accepts at rate_hz with n_channels;
+    below T_FLOOR_US (possibly negative) if no pulse fits."""
+    room = 1000000 // rate_hz - n_channels * FRAME_GAP_US - FRAME_TAIL_US
+    t = room // n_channels
+    if n_channels > 1 and t < FRAME_WORK_US:  # every pulse stretched to the work it hides
+        t = room - (n_channels - 1) * FRAME_WORK_US
+    return t
+
+
+def rate_max_fitting(n_channels, t_max_us):
+    """Highest rate (Hz) that frame_fits() accepts for n_channels pulses of t_max_us."""
+    return 1000000 // frame_us(n_channels, t_max_us)
+
 
 # ---- result codes (ACK byte 2) ----
 RES_OK = const(0)

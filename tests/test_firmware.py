@@ -192,7 +192,7 @@ def test_tick_wraparound_no_missed_or_doubled_frame():
 def test_rate_and_overruns_are_reported():
     reports, _, _ = run_fw("""
         s, board, usb, clock = make("steady", n=2)
-        start(s, t0=2000, i0=1000, y=0, limits=(100, 10000, 50, 4000, 10000000))  # 2 x 4000 us fits 100 Hz
+        start(s, t0=2000, i0=1000, y=0, limits=(100, 10000, 50, 3600, 10000000))  # 2 x 3600 us fits 100 Hz
         b = bytearray(64)
         assert apply(s, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP, 100)) == 0
         s.run(5)                      # 2 x 2000 us of pulses fit in a 10 ms frame

@@ -148,3 +148,45 @@ print(sum(n), direct, b.refused, c.armed, c.stop == hp.STOP_LIMIT)""")
     assert out.split() == ["0", "5", "5", "False", "True"]
     assert all(w >= hp.T_FLOOR_US for w in widths_us(r["pulses"])) and len(r["pulses"]) == 2
     assert r["gate"][0] == 0
+
+
+def test_start_returns_while_the_pulse_runs_and_wait_ends_its_capture(chip, cfg):
+    """start() hands the pulse to PIO + DMA and returns at once (the gate still high),
+    wait() returns after the capture (gate low, DMA idle, ADC stopped); both allocate
+    nothing; stopping the captured channel mid-pulse ends the capture at once, and
+    stopping another channel leaves the running pulse and its capture alone."""
+    out = chip.exec("""
+import rp2
+b.set_amplitude(0, 1000)
+b.set_amplitude(1, 1000)
+st = [0] * 10  # filled under the heap lock (a tuple would allocate)
+def look(k):
+    st[k] = time.ticks_us()  # (rp2040js does not show a PIO-driven pin in SIO GPIO_IN: edges come from the host)
+    st[k + 1] = 1 if b.dma.active() else 0
+    st[k + 2] = b.capturing
+micropython.heap_lock()
+try:
+    st[9] = b.start(0, 2000)
+    time.sleep_us(300)
+    look(0)
+    b.stop(1)  # another channel: this pulse goes on
+    b.wait()
+    look(3)
+    b.start(0, 3000)
+    time.sleep_us(500)
+    b.stop(0)  # mid-pulse, its capture running
+    look(6)
+    ok = 1
+except MemoryError:
+    ok = 0
+micropython.heap_unlock()
+print((ok, st, machine.mem32[0x4004C000] & 0x8))""")
+    ok, st, adc_running = eval(out)
+    n, mid, end, cut = st[9], tuple(st[0:3]), tuple(st[3:6]), tuple(st[6:9])
+    r = chip.take()
+    assert ok == 1 and n == 2000 // cfg.ADC_SAMPLE_US + 2
+    assert mid[1:] == (1, 0) and end[1:] == (0, -1) and cut[1:] == (0, -1) and adc_running == 0
+    # the CPU ran on 300 us into the 2 ms pulse (capture still running), wait() returned after its end
+    assert 1500 <= end[0] - mid[0] <= 2100
+    w = widths_us(r["pulses"])
+    assert w[0] == 2000 and 500 <= w[1] < 3000 and r["gate"][0] == 0

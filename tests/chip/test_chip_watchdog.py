@@ -29,14 +29,14 @@ def test_the_loop_feeds_the_watchdog_every_frame(chip, cfg):
     assert len(r["pulses"]) == 60
 
 
-@pytest.mark.parametrize("stall", ["fire", "loop"])
+@pytest.mark.parametrize("stall", ["capture", "loop"])
 def test_a_stalled_frame_resets_the_board_within_watchdog_ms(chip, cfg, stall):
     make_board(chip, cfg)
     chip.load(0, rp_ohm=10000)
     chip.exec(LOOP.format(frames=10))
     fed = chip.take()["feeds"]
-    if stall == "fire":  # e.g. a DMA transfer that never ends: the frame hangs inside the board layer
-        code = "def _stuck(ch, t_us):\n    while True:\n        pass\nb.fire = _stuck\ns.run()"
+    if stall == "capture":  # e.g. a DMA transfer that never ends: the frame hangs in the board's wait()
+        code = "def _stuck():\n    while True:\n        pass\ns._wait = _stuck\ns.run()"
     else:  # the loop stops calling the frame
         code = "while True:\n    pass"
     with pytest.raises(BoardReset) as e:

@@ -1,0 +1,99 @@
+"""The frame on the emulated chip (issue 12, deliverable 3): the real stim.Stimulator
+on the real board_rp2.Board. Channel k's pulse is delivered by the PIO gate and
+captured by ADC -> DMA while the CPU does channel k-1's work; 4 channels at 50 Hz
+and 2 channels at 100 Hz with 2 ms pulses never overrun; an error while a pulse
+is delivered lowers its gate at once. Emulated microseconds are deterministic."""
+
+import pytest
+
+import sensation_core as sc
+
+from .harness import make_board
+
+US = 1000  # ns
+LOAD = {"rs_ohm": 500, "rp_ohm": 20000, "tau_us": 450, "open": False}
+
+RUN = """
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, {rate})
+reps = [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000),
+        hp.cmd_arm(bytearray(64), hp.CH_ALL)]
+for rep in reps:
+    assert s.handle(rep, time.ticks_us()) == hp.RES_OK, rep[0]
+s.sync_outputs()
+o0 = s.overruns
+loops = []
+for f in range({frames} + 2):
+    s.run(1)
+    loops.append(s.loop_us)
+print((s.overruns - o0, s.errors, max(loops), [c.stop for c in s.chans], [c.dt for c in s.chans]))
+"""
+
+
+def run(chip, cfg, n, rate, mode, t0, frames):
+    make_board(chip, cfg, n_channels=n)
+    for k in range(n):
+        chip.host.call("load", ch=k, load=LOAD)
+    out = chip.eval_out(RUN.format(n=n, rate=rate, mode=mode, t0=t0, frames=frames))
+    return out, chip.take()
+
+
+@pytest.mark.parametrize("n, rate, t0", [(4, 50, 2000), (2, 100, 2000), (4, 50, "t_max"), (2, 100, "t_max"),
+                                        (1, 100, "t_max")])
+@pytest.mark.parametrize("mode", [sc.MODE_AKHTAR, sc.MODE_FAST])
+def test_no_overrun_with_2_ms_pulses_and_at_the_longest_t_max_the_rule_accepts(chip, cfg, n, rate, t0, mode):
+    """From the first frame (the calibration pulse included): no overrun, and the
+    longest frame within the period, also with every pulse at the t_max that
+    hid_protocol.frame_fits accepts for the configuration."""
+    import hid_protocol as hp
+
+    if t0 == "t_max":
+        t0 = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))
+    frames = 12
+    (overruns, errors, worst_loop_us, stops, dts), r = run(chip, cfg, n, rate, mode, t0, frames)
+    print(f"{n} ch @ {rate} Hz, T0 {t0} us, mode {mode}: longest frame {worst_loop_us} us")
+    assert (overruns, errors, stops) == (0, 0, [0] * n)
+    assert worst_loop_us < 1000000 // rate
+    assert all(abs(t - t0) <= t0 // 10 for t in dts)  # the controller kept T near T0 on this steady load
+    widths = [(p["fall_ns"] - p["rise_ns"]) // US for p in r["pulses"]]
+    assert len(widths) == n * (frames + 2)  # every channel pulsed in every frame
+
+
+def test_the_next_pulse_starts_while_the_previous_channel_is_computed(chip, cfg):
+    """Channel 1's pulse rises right after channel 0's capture ends, long before
+    channel 0's measure -> control -> report is done: the frame is shorter than
+    the pulses plus every channel's work done one after the other."""
+    (overruns, errors, worst_loop_us, _, _), r = run(chip, cfg, 2, 50, sc.MODE_AKHTAR, 1000, 6)
+    assert (overruns, errors) == (0, 0)
+    p = r["pulses"]
+    gaps = [(b["rise_ns"] - a["fall_ns"]) / US for a, b in zip(p, p[1:]) if (a["ch"], b["ch"]) == (0, 1)]
+    print("gap between channel 0's fall and channel 1's rise (us):", sorted(set(gaps)))
+    assert len(gaps) == 8 and max(gaps) < 300
+
+
+def test_an_error_while_a_pulse_is_delivered_lowers_its_gate_at_once(chip, cfg):
+    """Channel 0's controller fails while channel 1's 4 ms pulse is on: the frame's
+    error path stops every channel, which cuts that pulse short, ends its capture,
+    and no pulse follows."""
+    import hid_protocol as hp
+
+    make_board(chip, cfg, n_channels=2)
+    for k in range(2):
+        chip.host.call("load", ch=k, load=LOAD)
+    out = chip.eval_out(RUN.format(n=2, rate=50, mode=sc.MODE_AKHTAR, t0=4000, frames=2) + """
+def _fail(rp_ohm):
+    raise ValueError("injected")
+s.chans[0].ctl.update = _fail
+s.run(3)
+print((s.errors, [c.stop for c in s.chans], [c.armed for c in s.chans], b.capturing, b.dma.active()))
+""")
+    r = chip.take()
+    errors, stops, armed, capturing, dma_active = out
+    assert errors == 1 and stops == [hp.STOP_INTERNAL] * 2 and armed == [False, False]
+    assert capturing == -1 and not dma_active
+    p = r["pulses"]
+    widths = [((q["fall_ns"] - q["rise_ns"]) / US, q["ch"]) for q in p]
+    # 4 full frames, then channel 0's pulse and channel 1's cut one, then nothing
+    assert widths[:8] == [(4000, 0), (4000, 1)] * 4
+    assert widths[8] == (4000, 0) and widths[9][1] == 1 and widths[9][0] < 4000 and len(widths) == 10
+    print(f"channel 1's pulse cut after {widths[9][0]} us")
+    assert r["gate"] == [0, 0]
