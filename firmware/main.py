@@ -265,6 +265,9 @@ def main_rp2():
         s = stim.Stimulator(board, board_rp2.Clock(), cfg)
         stim.RUNNING = s  # what `steadytouch flash` reads back over the REPL after its Ctrl-C
         print("steadytouch %d.%d.%d running; Ctrl-C stops stimulation and frees the REPL" % stim.FW_VERSION)
+        import gc
+
+        gc.collect()  # the set-up's garbage goes now, not in an automatic collection inside a first frame
         run_until_ctrl_c(s, CtrlC())
         raise KeyboardInterrupt
     except KeyboardInterrupt:  # from run_until_ctrl_c, or a Ctrl-C during the set-up
