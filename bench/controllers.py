@@ -350,6 +350,45 @@ def within(rows, target, events, n, tol=0.01):
     return reach, surge, out
 
 
+def metrics(rows, target, me, events, n):
+    k, i, t, rp, mq, st = rows.T
+    on = i > 0
+    err = np.where(on, mq - target, np.nan)
+    thr = np.maximum(25.0, (0.5 * i + 0.5 * t) * 1000 / np.maximum(rp - X, 1))
+    starts = [x.pulse for x in events] + [n]
+    settles, over_i, over_q, under_i = [], [], [], []
+    for a, b in zip(starts, starts[1:]):
+        seg = slice(a, b)
+        ok = np.abs(err[seg]) < thr[seg]
+        ok &= on[seg]
+        s = None
+        for j in range(len(ok)):
+            if ok[j:].all():
+                s = j
+                break
+        settles.append(s)
+        if s is not None and a > 0:
+            before_i, after_i = i[a - 1], i[a + s]
+            before_q, after_q = i[a - 1] * t[a - 1], i[a + s] * t[a + s]
+            lo_i, hi_i = min(before_i, after_i), max(before_i, after_i)
+            hi_q = max(before_q, after_q)
+            ii, qq = i[a : a + s + 1], i[a : a + s + 1] * t[a : a + s + 1]
+            # overshoot (shock risk): current or charge above the range; a dip of the
+            # current below it (less sensation, not a shock) is reported on its own
+            over_i.append(max(0.0, (ii.max() - hi_i) / hi_i))
+            over_q.append(max(0.0, (qq.max() - hi_q) / hi_q))
+            under_i.append(max(0.0, (lo_i - ii[ii > 0].min()) / lo_i) if (ii > 0).any() else 0.0)
+    rel_q = err[on] / target
+    rel_e = (i[on] ** 2 * t[on] - me) / me
+    floor = int(np.sum(((st.astype(int) & (sc.ST_I_MIN | sc.ST_T_MIN)) > 0) & on))
+    return {
+        "settle": settles, "rms_q": float(np.sqrt(np.nanmean(rel_q**2))), "peak_q": float(np.nanmax(np.abs(rel_q))),
+        "rms_e": float(np.sqrt(np.mean(rel_e**2))), "peak_e": float(np.max(np.abs(rel_e))),
+        "over_i": max(over_i, default=0.0), "over_q": max(over_q, default=0.0),
+        "under_i": max(under_i, default=0.0), "floor": floor,
+    }
+
+
 def step_events(i0, delta_kohm):
     """A step of delta in Rp at the operating point (fixed I, T), made by scaling hydration."""
     e = Electrode()
