@@ -177,12 +177,21 @@ class _Hold:
         return self.e.contact, self.e.h, 0.0
 
 
+PEAK = "median3"  # the firmware's estimator; "end": the last sample, from an end-aligned capture (--peak end)
+
+
 def _peak3(buf, n):
     """stim._peak_mv's peak (ADC counts): the largest median of 3 neighbours; < 3 samples: the smallest."""
     if n <= 0:
         return 0
     if n < 3:
         return min(buf[0], buf[1]) if n == 2 else buf[0]
+    if PEAK == "end":  # what an estimator that keeps the end of the pulse would read (no spike guard: a bound)
+        return max(buf[n - 1], _peak3_median(buf, n))
+    return _peak3_median(buf, n)
+
+
+def _peak3_median(buf, n):
     best = 0
     for k in range(2, n):
         a, b, x = buf[k - 2], buf[k - 1], buf[k]
@@ -205,6 +214,7 @@ class Meter:
         self.b = board_sim.SimBoard(c, board_sim.VirtualClock(), _Hold(e), 1, seed, electrodes=[e],
                                     ideal=(board == "ideal"), correction=correction)
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
+        self.b.align_end = PEAK == "end"
 
     def pulse(self, i_ua, t_us):
         """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse."""
@@ -419,12 +429,17 @@ def main():
                          "(ideal, or real: the parts' errors, docs/simulation.md)")
     ap.add_argument("--correct", action="store_true", help="with --board real: the self-test's monitor correction")
     ap.add_argument("--sweeps", type=int, default=5, help="repeated calibration sweeps for the averaged fit (study)")
+    ap.add_argument("--peak", choices=["median3", "end"], default="median3",
+                    help="the peak estimator: the firmware's (default) or the end-of-pulse sample of an "
+                         "end-aligned capture (what fixing the early read would give)")
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
                     help="only the study on N unseen electrodes (steps; 1 %% settling, surges)")
     a = ap.parse_args()
+    global PEAK
+    PEAK = a.peak
     if a.study:
-        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None)
+        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise)
         return
     cases = []
     for name in ("gel-step", "gel", "peel", "exercise", "off"):
@@ -500,7 +515,7 @@ STUDY_MODES = {"akhtar": (sc.MODE_AKHTAR, 1), "fast, 1 sweep (sent as is)": (sc.
                "fast, averaged sweeps + trust": (sc.MODE_FAST, 0), "fast, no model": (FAST_NO_MODEL, 1)}
 
 
-def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_us=None):
+def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_us=None, noise=0.0):
     """Step disturbances (gel on, off; half peeled, pressed back) on n_electrodes unseen
     electrodes, read through the board; per mode: pulses until the felt mQ stays within
     tol of its calibrated value (median, 90th percentile over the steps where the law can
@@ -516,7 +531,7 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
         runs = {}
         for name, (mode, sw) in STUDY_MODES.items():
             rows, target, me = run(mode, STUDY_EVENTS, STUDY_N, i0=i0, board=board, sweeps=sw or sweeps,
-                                   electrode=mk, correction=corr, seed=1000 + k, adc_us=adc_us)
+                                   electrode=mk, correction=corr, seed=1000 + k, adc_us=adc_us, noise=noise)
             if mode == sc.MODE_FAST and not sw:
                 trust.append(FIT_INFO.get("trusted", False))
             runs[name] = (rows, target, FIT_INFO.get("measured"))
@@ -545,12 +560,13 @@ def _pct(xs):
     return f"{np.median(a):g} / {np.percentile(a, 90, method='higher'):g}"
 
 
-def print_study(n, board, sweeps, correct, adc_us=None):
-    res, trust, skipped = study(n, board, sweeps, correct, adc_us=adc_us)
+def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
+    res, trust, skipped = study(n, board, sweeps, correct, adc_us=adc_us, noise=noise)
     total = len(next(iter(res.values()))["settle"])
     print(f"\n{n} unseen electrodes x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
-          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}; {total} steps where the law can be met "
+          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{', end-of-pulse peak' if PEAK == 'end' else ''}"
+          f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
           f"({skipped} left out); averaged fit trusted on {sum(trust)} of {len(trust)} electrodes "
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")
     print("| mode | felt mQ: pulses to reach 1 %, median / 90th pct / worst | steps never within 1 % | pulses "

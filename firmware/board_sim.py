@@ -283,6 +283,7 @@ class SimBoard:
         self.compliance_mv = cfg.COMPLIANCE_MV
         self.last_rp_kohm = [0.0] * n_channels  # the true Rp of the last pulse (kohm)
         self.last_i_ua = [0.0] * n_channels  # the true (physical) current of the last pulse (uA)
+        self.align_end = False  # True: the ADC's last sample lands on the pulse's end (capture started T mod dt late)
         self.corr = [None] * n_channels
         if correction:
             for k in range(n_channels):
@@ -369,14 +370,18 @@ class SimBoard:
         dnl = an.dnl
         corr = self.corr[ch]
         since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
-        left = 1.0  # e^(-t/tau) at t = (k+1) dt
+        left = 1.0  # e^(-t/tau) at t = (k+1) dt (+ lag)
+        lag = 0
+        if self.align_end and on:
+            lag = t_us - n * self.dt_us
+            left = 2.718281828459045 ** (-lag / tau)
         i_end = i_set
         for k in range(n):
             left *= decay
             if self.ideal:
                 i_ma = i_set / 1000.0
             else:
-                i_end = self._level_ua(ch, since + (k + 1) * self.dt_us)
+                i_end = self._level_ua(ch, since + lag + (k + 1) * self.dt_us)
                 i_ma = i_end / 1000.0
             mv = full if not on else i_ma * (rs + rp * (1.0 - left)) * 1000.0
             if mv > full:
