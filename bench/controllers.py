@@ -1,6 +1,13 @@
 """Every controller mode x every simulated disturbance, on the simulated electrode.
 
 Run: .venv/bin/python bench/controllers.py [--noise 0] [--plots docs/img]
+     [--board exact|ideal|real [--correct]] [--skip exercise] [--study N [--sweeps 10] [--peak end]]
+
+--board real reads Rp through the simulated board with the parts' errors (Meter:
+board_sim.SimBoard, the firmware's peak and Rp = Vp / I_delivered); mQ is then
+the felt one (true current and Rp). --study N: steps on N unseen electrodes,
+pulses to reach 1 % and surges after the first correction (docs/performance.md,
+"Controllers on the realistic board").
 
 The integer core (shared/sensation_core.py, CPython) drives the electrode model
 (firmware/sim_electrode.py) pulse by pulse; Rp is read as the model's
