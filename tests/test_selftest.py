@@ -75,3 +75,37 @@ def test_selftest_user_mistakes_are_one_line_and_store_nothing(tmp_path, args, w
     p = run("selftest", *args, "--device", "sim://steady", env=env)
     assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not (tmp_path / "vmon_cal.txt").exists()
+
+
+@pytest.mark.parametrize("url, words", [
+    ("sim://steady?board=perfect", "board is real (the parts' errors, default) or ideal"),
+    ("sim://steady?load=ten", "load takes a whole number of ohms"),
+    ("sim://steady?load=5", "load=5 ohm out of range [100, 1000000]"),
+])
+def test_bad_board_or_load_in_a_sim_url_is_one_line(url, words):
+    p = run("info", "--device", url)
+    assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_the_ideal_switch_reaches_the_board(tmp_path):
+    """sim://...?board=ideal and `steadytouch sim --ideal-board`: the commanded current
+    exactly, no gain/offset error (a 10 kohm load reads 10 kohm within the noise)."""
+    from steadytouch.device import Device
+    from steadytouch.protocol import Telemetry
+    from steadytouch.transport import open_transport
+
+    rps = {}
+    for board in ("ideal", "real"):
+        with open_transport(f"sim://steady?load=10000&board={board}&auto=1000,1000,-1670,186000") as t:
+            d = Device(t)
+            got = []
+            while len(got) < 20:
+                r = d.read(5)
+                if isinstance(r, Telemetry) and r.channel == 0 and r.i_ua:
+                    got.append(r.rp_ohm)
+            rps[board] = sorted(got)[10]
+    assert abs(rps["ideal"] - 10000) < 100  # the peak search's noise bias only (~2 counts at 1 mA)
+    assert rps["real"] - 10000 > 150  # ch0: path gain 1.009 and +160 mV offset
+    p = run("sim", "steady", "--mode", "open", "--ideal-board", "--no-plot", "--out", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "board=ideal" in (tmp_path / "steady-open.csv").read_text()[:2000]
