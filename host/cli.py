@@ -540,15 +540,29 @@ def cmd_fit(a) -> int:
 def cmd_skin(a) -> int:
     from . import skin
 
-    m = skin.fit(skin.load(a.file))
-    say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
-        f"worst misfit {m.worst_misfit:.3%} over the pulses")
-    if m.worst_misfit > 0.02:
-        say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
+    sweeps = skin.load_sweeps(a.file)
+    if len(sweeps) > 1:  # repeated sweeps: the averaged fit, its uncertainty, and whether to send it
+        i0, t0 = int(sweeps[0][0][0]), int(sweeps[0][0][1])
+        f = skin.fit_sweeps(sweeps, i0, t0)
+        m = f.model
+        say(f"{a.file}: {f.sweeps} sweeps averaged: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), "
+            f"Cp {m.cp_pf} pF; Rp shape known to {f.shape_sd:.2%} (1 sd) around I0 {i0} uA, T0 {t0} us; "
+            f"worst misfit {m.worst_misfit:.3%}")
+        if not f.trusted:
+            say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
+        args = f.args()
+    else:
+        m = skin.fit(sweeps[0])
+        say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
+            f"worst misfit {m.worst_misfit:.3%} over the pulses")
+        if m.worst_misfit > 0.02:
+            say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
+        say("one sweep: its uncertainty is unknown; repeated sweeps (a `sweep` column) let the fit judge itself")
+        args = m.args()
     if a.send:
-        _precheck("skin", *m.args(), _channel(a))
+        _precheck("skin", *args, _channel(a))
         with open_transport(a.device) as t:
-            ack = Device(t).skin(*m.args(), ch=_channel(a))
+            ack = Device(t).skin(*args, ch=_channel(a))
             say(f"{a.device}: {ack.words()}")
     return 0
 
@@ -790,7 +804,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print the results as JSON")
 
     s = add("skin", cmd_skin, "fit MODE_FAST's electrode model (Rs, beta, Cp) to calibration pulses; --send sets it",
-            "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm)\n"
+            "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm; optional sweep: repeated sweeps, averaged)\n"
             "  steadytouch skin exp1.csv --send --channel 0 --device hid://1209:0001")
     s.add_argument("file", help="CSV with i_ua, t_us, rp_ohm per pulse (one person, one site)")
     s.add_argument("--send", action="store_true", help="send the fitted model to the device (disarmed)")

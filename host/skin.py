@@ -180,3 +180,22 @@ def sweep_wide(i0_ua: int, t0_us: int, t_max_us: int = 8000) -> list[tuple[int, 
     Cp and Rs are told apart (MODE_FAST extrapolates to where a step takes the pulse)."""
     me = i0_ua * i0_ua * t0_us
     return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in WIDE_T_US if t != t0_us and t <= t_max_us]
+
+
+def load_sweeps(path) -> list[list[tuple[float, float, float]]]:
+    """Repeated sweeps from a CSV with i_ua, t_us, rp_ohm and a `sweep` column (rows of
+    one sweep share its value; every sweep the same pulses in the same order). Without
+    a `sweep` column: one sweep."""
+    from .files import csv_rows, read_text_file
+
+    rows = load(path)
+    table = csv_rows(path, read_text_file(path, "CSV file"))
+    head = [h.strip() for h in table[0]]
+    if "sweep" not in head:
+        return [rows]
+    j = head.index("sweep")
+    ids = [r[j].strip() if j < len(r) else "" for r in table[1:] if any(c.strip() for c in r)]
+    groups: dict[str, list] = {}
+    for sid, row in zip(ids, rows):
+        groups.setdefault(sid, []).append(row)
+    return list(groups.values())

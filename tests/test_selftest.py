@@ -109,3 +109,25 @@ def test_the_ideal_switch_reaches_the_board(tmp_path):
     p = run("sim", "steady", "--mode", "open", "--ideal-board", "--no-plot", "--out", str(tmp_path))
     assert p.returncode == 0, p.stderr
     assert "board=ideal" in (tmp_path / "steady-open.csv").read_text()[:2000]
+
+
+def test_skin_with_repeated_sweeps_reports_its_uncertainty_and_sends_no_model_it_cannot_trust(tmp_path):
+    """`steadytouch skin` on a CSV with a sweep column: averaged fit, its uncertainty; an
+    untrusted model is not sent (the device's is removed: MODE_FAST runs model-free)."""
+    import numpy as np
+
+    from sim_electrode import Electrode
+    from steadytouch import skin
+
+    e = Electrode()
+    rng = np.random.default_rng(3)
+    for noise, trusted in ((0.002, True), (0.05, False)):
+        f = tmp_path / f"sweeps-{noise}.csv"
+        f.write_text("sweep,i_ua,t_us,rp_ohm\n" + "".join(
+            f"{k},{i},{t},{round(e.rp_kohm(i, t) * 1000 * (1 + noise * rng.normal()))}\n"
+            for k in range(6) for i, t in skin.sweep_wide(1000, 1000)))
+        p = run("skin", str(f), "--send", "--device", "sim://steady")
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "6 sweeps averaged" in p.stdout and "Rp shape known to" in p.stdout
+        assert ("not trusted" in p.stdout) is (not trusted)
+        assert "sim://steady: skin: ok" in p.stdout
