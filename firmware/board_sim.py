@@ -197,46 +197,11 @@ class StdioUSB:
         return True
 
 
-CAL_HEADER = "steadytouch monitor correction v1"
-CAL_GAIN_PPM = (900000, 1100000)  # accepted monitor gain (measured/true) in ppm
-CAL_OFFSET_MV = (-2000, 2000)  # accepted monitor offset (electrode-referred mV)
-
-
-def parse_correction(text, n_channels):
-    """The monitor correction file `steadytouch selftest` writes: a header line, then
-    one line `CH GAIN_PPM OFFSET_MV` per channel (measured mV = gain x true mV + offset).
-    Returns [(gain_ppm, offset_mv) or None per channel]; ValueError names the line."""
-    lines = text.splitlines()
-    if not lines or lines[0].strip() != CAL_HEADER:
-        raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
-    out = [None] * n_channels
-    for k in range(1, len(lines)):
-        ln = lines[k].strip()
-        if not ln or ln[0] == "#":
-            continue
-        parts = ln.split()
-        try:
-            ch, g, off = int(parts[0]), int(parts[1]), int(parts[2])
-        except (ValueError, IndexError):
-            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV" % (k + 1))
-        if not (CAL_GAIN_PPM[0] <= g <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= off <= CAL_OFFSET_MV[1]):
-            raise ValueError("correction file line %d: gain %d ppm or offset %d mV out of range [%d, %d] / [%d, %d]"
-                             % (k + 1, g, off, CAL_GAIN_PPM[0], CAL_GAIN_PPM[1], CAL_OFFSET_MV[0], CAL_OFFSET_MV[1]))
-        if 0 <= ch < n_channels:
-            out[ch] = (g, off)
-    return out
-
-
-def correction_terms(gain_ppm, offset_mv, uv_per_count):
-    """(k_q13, off_q4) for correct_count: 1/gain in Q13, the offset in 1/16 ADC counts."""
-    return (8192 * 1000000 + gain_ppm // 2) // gain_ppm, (offset_mv * 16000 * 2 + uv_per_count) // (2 * uv_per_count)
-
-
-def correct_count(c, k_q13, off_q4):
-    """One ADC count with the monitor's offset and gain taken out (integer, every
-    intermediate < 2**30 for gains and offsets within CAL_GAIN_PPM / CAL_OFFSET_MV)."""
-    v = ((c * 16 - off_q4) * k_q13 + 65536) >> 17
-    return 0 if v < 0 else (ADC_MAX if v > ADC_MAX else v)
+# the monitor correction (steadytouch selftest) is the device's own code: vmon_cal
+from vmon_cal import CAL_GAIN_PPM, CAL_HEADER, CAL_OFFSET_MV  # noqa: F401 (names for the host and tests)
+from vmon_cal import correct as correct_count  # noqa: F401
+from vmon_cal import parse as parse_correction  # noqa: F401
+from vmon_cal import terms as correction_terms
 
 
 class SimBoard:

@@ -83,7 +83,6 @@ USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--chan
           " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]"
          " [--keepalive-ms 0|%d-%d] [--exit-on-eof] [--ideal-board] [--load-ohm 100-1000000] [--flash-dir DIR]"
          % (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
-VMON_CAL_FILE = "vmon_cal.txt"  # the monitor correction, in the board's flash (sim: --flash-dir)
 
 
 MODE_NAMES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
@@ -197,17 +196,13 @@ def main_sim(argv):
     usb = board_sim.StdioUSB()
     correction = None
     if o["flash_dir"]:
-        path = o["flash_dir"].rstrip("/") + "/" + VMON_CAL_FILE
+        import vmon_cal
+
+        path = o["flash_dir"].rstrip("/") + "/" + vmon_cal.CAL_FILE
         try:
-            with open(path) as f:
-                text = f.read()
-        except OSError:
-            text = None  # nothing stored: the monitor is used uncorrected
-        if text is not None:
-            try:
-                correction = board_sim.parse_correction(text, o["channels"])
-            except ValueError as e:
-                raise UsageError("%s: %s" % (path, e))
+            correction = vmon_cal.load(path, o["channels"])  # None: nothing stored, the monitor uncorrected
+        except ValueError as e:
+            raise UsageError("%s: %s" % (path, e))
     board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb, ideal=o["ideal"],
                                load_ohm=o["load_ohm"], correction=correction)
     s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=o["keepalive_ms"])

@@ -27,9 +27,9 @@ import numpy as np
 import hid_protocol as hp
 import sensation_core as sc
 
-CAL_FILE = "vmon_cal.txt"  # firmware/main.py VMON_CAL_FILE
-CAL_HEADER = "steadytouch monitor correction v1"  # firmware/board_sim.py CAL_HEADER
-GAIN_PPM_RANGE = (900_000, 1_100_000)  # what the firmware accepts (board_sim.CAL_GAIN_PPM)
+CAL_FILE = "vmon_cal.txt"  # firmware/vmon_cal.py CAL_FILE
+CAL_HEADER = "steadytouch monitor correction v1"  # firmware/vmon_cal.py CAL_HEADER
+GAIN_PPM_RANGE = (900_000, 1_100_000)  # what the firmware accepts (vmon_cal.CAL_GAIN_PPM)
 OFFSET_MV_RANGE = (-2000, 2000)
 LOAD_OHM_RANGE = (1000, 100_000)
 CURRENTS_UA = (500, 1000, 2000, 3000, 4500, 6000, 8000)

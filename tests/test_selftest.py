@@ -131,3 +131,10 @@ def test_skin_with_repeated_sweeps_reports_its_uncertainty_and_sends_no_model_it
         assert "6 sweeps averaged" in p.stdout and "Rp shape known to" in p.stdout
         assert ("not trusted" in p.stdout) is (not trusted)
         assert "sim://steady: skin: ok" in p.stdout
+
+
+def test_host_and_firmware_agree_on_the_correction_file():
+    import vmon_cal
+
+    assert (st.CAL_FILE, st.CAL_HEADER, st.GAIN_PPM_RANGE, st.OFFSET_MV_RANGE) == (
+        vmon_cal.CAL_FILE, vmon_cal.CAL_HEADER, vmon_cal.CAL_GAIN_PPM, vmon_cal.CAL_OFFSET_MV)
