@@ -2,6 +2,14 @@
 # electrodes behind each channel, a virtual or real clock, and USB reports
 # framed on stdio (or kept in memory for tests). It is the "hardware" of the
 # MicroPython unix VM: the firmware's frame runs against it unchanged.
+#
+# By default its analog path has the real parts' errors (AnalogPath below; each
+# one with its source in docs/simulation.md, "The realistic board"): a 12-bit
+# amplitude DAC (quantization, settling, gain error), the RP2040 ADC's noise at
+# 8.7 ENOB and its DNL spikes (erratum RP2040-E11), the voltage monitor's gain
+# and offset error, and compliance clipping. AnalogPath(ideal=True) is the
+# board as it was before: the commanded current exactly, a 12-bit ADC with
+# 1.5 counts of noise and nothing else (for tests of the ideal math).
 import random
 import sys
 from array import array
@@ -11,6 +19,63 @@ import sim_electrode
 MAGIC0 = 0xA5  # stdio framing: MAGIC0 MAGIC1 then a 64-byte report
 MAGIC1 = 0x5A
 ADC_MAX = 4095
+
+# ---- the realistic board's analog errors (docs/simulation.md, "The realistic board") ----
+DAC_CODES = 4096  # 12-bit amplitude DAC (e.g. MCP4728), full scale = cfg.AMP_UA_AT_FULL
+DAC_SETTLE_US = 6.0  # MCP4728 datasheet: settling time 6 us (to +-0.5 LSB)
+DAC_TAU_US = 6.0 / 9.01  # first-order: 0.5 LSB of 12 bits = e^-9.01 after DAC_SETTLE_US
+DAC_GAIN = (0.9940, 1.0060, 0.9970, 1.0040)  # per channel: DAC + stimulator transconductance
+ADC_NOISE_COUNTS = 2.84  # 8.7 ENOB (RP2040 datasheet): 2**(12 - 8.7) / sqrt(12) LSB rms
+ADC_DNL_CODES = (512, 1536, 2560, 3584)  # erratum RP2040-E11
+ADC_DNL_WIDTH = 9  # those codes are ~9 LSB wide (DNL ~ +8 LSB); their neighbours go missing
+MON_GAIN = (1.0150, 0.9880, 1.0070, 0.9930)  # per channel: divider tolerance x ADC reference
+MON_OFFSET_MV = (160, -110, 80, 220)  # per channel, electrode-referred: amplifier + ADC offset
+IDEAL_NOISE_COUNTS = 1.5  # the ideal board's ADC noise (as before the realistic model)
+
+
+class AnalogPath:
+    """The DAC -> stimulator -> electrode -> monitor -> ADC errors of n channels.
+
+    ideal=True: the commanded current exactly, no gain/offset error, no DNL,
+    1.5 counts of ADC noise (bit for bit the board before this model)."""
+
+    def __init__(self, cfg, n_channels, ideal=False, noise_counts=None):
+        self.ideal = ideal
+        self.fs_ua = cfg.AMP_UA_AT_FULL
+        self.uv = cfg.VMON_UV_PER_COUNT
+        if ideal:
+            self.noise = IDEAL_NOISE_COUNTS if noise_counts is None else noise_counts
+            self.dac_gain = [1.0] * n_channels
+            self.mon_gain = [1.0] * n_channels
+            self.mon_off_counts = [0.0] * n_channels
+            self.dnl = None
+        else:
+            self.noise = ADC_NOISE_COUNTS if noise_counts is None else noise_counts
+            self.dac_gain = [DAC_GAIN[k % 4] for k in range(n_channels)]
+            self.mon_gain = [MON_GAIN[k % 4] for k in range(n_channels)]
+            self.mon_off_counts = [MON_OFFSET_MV[k % 4] * 1000.0 / self.uv for k in range(n_channels)]
+            dnl = array("H", range(ADC_MAX + 1))  # raw code -> the code the ADC reports
+            h = ADC_DNL_WIDTH // 2
+            for s in ADC_DNL_CODES:
+                for c in range(s - h, s + h + 1):
+                    dnl[c] = s
+            self.dnl = dnl
+
+    def code(self, i_ua):
+        """The DAC code for a commanded current: the largest not above it (never more
+        current than commanded), clipped to the DAC's range."""
+        if i_ua <= 0:
+            return 0
+        c = i_ua * DAC_CODES // self.fs_ua
+        return DAC_CODES - 1 if c >= DAC_CODES else c
+
+    def delivered_ua(self, code):
+        """What the firmware is told: code x LSB, whole uA (rounded down)."""
+        return code * self.fs_ua // DAC_CODES
+
+    def physical_ua(self, ch, code):
+        """The current the output stage really drives (float uA): code x LSB x gain error."""
+        return code * self.fs_ua / DAC_CODES * self.dac_gain[ch]
 
 
 class VirtualClock:
@@ -132,24 +197,46 @@ class StdioUSB:
         return True
 
 
+# the monitor correction (steadytouch selftest) is the device's own code: vmon_cal
+from vmon_cal import CAL_GAIN_PPM, CAL_HEADER, CAL_OFFSET_MV  # noqa: F401 (names for the host and tests)
+from vmon_cal import correct as correct_count  # noqa: F401
+from vmon_cal import parse as parse_correction  # noqa: F401
+from vmon_cal import terms as correction_terms
+
+
 class SimBoard:
-    """n simulated channels, each a stimulator + electrode + voltage monitor."""
+    """n simulated channels, each a stimulator + electrode (or a resistor) + voltage monitor.
+
+    ideal: False (default) the realistic analog path (AnalogPath); True the ideal one.
+    load_ohm: a resistor on every channel instead of the electrodes (self-test).
+    correction: [(gain_ppm, offset_mv) or None per channel], the monitor correction
+    the board applies to every ADC sample (from `steadytouch selftest`)."""
 
     def __init__(self, cfg, clock, scenario, n_channels=2, seed=1, usb=None, electrodes=None,
-                 noise_counts=1.5):
+                 noise_counts=None, ideal=False, load_ohm=0, correction=None):
         self.cfg = cfg
         self.clock = clock
         self.scenario = scenario
         self.n_channels = n_channels
         self.usb = usb or MemoryUSB()
-        self.electrodes = electrodes or [sim_electrode.Electrode() for _ in range(n_channels)]
-        self.noise = noise_counts
+        if electrodes is None:
+            if load_ohm:
+                electrodes = [sim_electrode.Resistor(load_ohm) for _ in range(n_channels)]
+            else:
+                electrodes = [sim_electrode.Electrode() for _ in range(n_channels)]
+        self.electrodes = electrodes
+        self.analog = AnalogPath(cfg, n_channels, ideal, noise_counts)
+        self.ideal = ideal
+        self.noise = self.analog.noise
         self.rng = random
         random.seed(seed)
         self.dt_us = cfg.ADC_SAMPLE_US
         self.n_max = cfg.HARD_T_MAX_US // cfg.ADC_SAMPLE_US + 2
         self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n_channels)]
-        self.amp = [0] * n_channels
+        self.amp = [0] * n_channels  # the delivered current the firmware was told (uA)
+        self.code = [0] * n_channels  # the DAC code
+        self.i_from = [0.0] * n_channels  # physical current (uA) when the DAC was last written
+        self.t_set = [clock.ticks_us()] * n_channels  # ... and when
         self.gate_high = [False] * n_channels
         self.pulses = [0] * n_channels
         self.stops = [0] * n_channels
@@ -159,7 +246,14 @@ class SimBoard:
         self.glitch = [0.0] * n_channels  # next pulse's measurement x this factor (0: none)
         self.spike = [0] * n_channels  # next pulse: one ADC sample at full scale
         self.compliance_mv = cfg.COMPLIANCE_MV
-        self.last_rp_kohm = [0.0] * n_channels
+        self.last_rp_kohm = [0.0] * n_channels  # the true Rp of the last pulse (kohm)
+        self.last_i_ua = [0.0] * n_channels  # the true (physical) current of the last pulse (uA)
+        self.align_end = False  # True: the ADC's last sample lands on the pulse's end (capture started T mod dt late)
+        self.corr = [None] * n_channels
+        if correction:
+            for k in range(n_channels):
+                if k < len(correction) and correction[k]:
+                    self.corr[k] = correction_terms(correction[k][0], correction[k][1], cfg.VMON_UV_PER_COUNT)
 
     # -------------------------------------------------- the scenario's clock
     def _advance_scenario(self):
@@ -175,14 +269,31 @@ class SimBoard:
             e.contact = contact
             e.step_hydration(h_t, tau, dt_s)
 
+    def _level_ua(self, ch, after_us):
+        """The physical output current after_us after the last DAC write (first-order settling)."""
+        target = self.analog.physical_ua(ch, self.code[ch])
+        d = self.i_from[ch] - target
+        if self.ideal or d == 0.0 or after_us * 1.0 > 40.0 * DAC_TAU_US:
+            return target
+        return target + d * 2.718281828459045 ** (-after_us / DAC_TAU_US)
+
     # ---------------------------------------------------------- the board API
     def set_amplitude(self, ch, i_ua):
-        """Ideal output stage: delivers exactly i_ua (the board contract: returns the delivered uA)."""
-        self.amp[ch] = i_ua
-        return i_ua
+        """Write the amplitude DAC; return the current (uA) the output stage will deliver:
+        code x LSB (the ideal board: i_ua itself)."""
+        now = self.clock.ticks_us()
+        self.i_from[ch] = self._level_ua(ch, self.clock.ticks_diff(now, self.t_set[ch]))
+        self.t_set[ch] = now
+        if self.ideal:
+            self.code[ch] = i_ua if i_ua > 0 else 0
+            self.amp[ch] = self.code[ch]
+            return self.amp[ch]
+        self.code[ch] = self.analog.code(i_ua)
+        self.amp[ch] = self.analog.delivered_ua(self.code[ch])
+        return self.amp[ch]
 
     def stop(self, ch):
-        self.amp[ch] = 0
+        self.set_amplitude(ch, 0)
         self.gate_high[ch] = False
         self.stops[ch] += 1
 
@@ -193,39 +304,66 @@ class SimBoard:
     def fire(self, ch, t_us):
         """Gate a pulse of t_us at the set amplitude; fill adc[ch]; return the sample count."""
         self._advance_scenario()
-        i_ua = self.amp[ch]
+        an = self.analog
+        i_set = an.physical_ua(ch, self.code[ch]) if not self.ideal else self.amp[ch]
         n = t_us // self.dt_us
         if n > self.n_max:
             n = self.n_max
         buf = self.adc[ch]
-        if i_ua <= 0 or n <= 0:
+        if i_set <= 0 or n <= 0:
             self.clock.advance(t_us)
             return 0
         self.pulses[ch] += 1
         e = self.electrodes[ch]
         uv = self.cfg.VMON_UV_PER_COUNT
         full = self.compliance_mv
-        if e.pulse(i_ua):
-            i_ma = i_ua / 1000.0
+        if e.pulse(i_set):
             rs, rp, tau = e.rs, e.rp_skin, e.tau
             self.last_rp_kohm[ch] = rs + rp * (1.0 - 2.718281828459045 ** (-t_us / tau))
             decay = 2.718281828459045 ** (-self.dt_us / tau)
+            on = True
         else:
-            i_ma, rs, rp, decay = 0.0, 0.0, 0.0, 0.0  # off: the stimulator hits compliance
+            rs, rp, decay = 0.0, 0.0, 0.0  # off: the stimulator hits compliance
             self.last_rp_kohm[ch] = float("inf")
+            on = False
         g = self.glitch[ch] or 1.0
         self.glitch[ch] = 0.0
         rnd = self.rng.random
         sig2 = 2.0 * self.noise
-        left = 1.0  # e^(-t/tau) at t = (k+1) dt
+        gain = an.mon_gain[ch] * g * 1000.0 / uv  # electrode mV -> ADC counts
+        off = an.mon_off_counts[ch]
+        dnl = an.dnl
+        corr = self.corr[ch]
+        since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
+        left = 1.0  # e^(-t/tau) at t = (k+1) dt (+ lag)
+        lag = 0
+        if self.align_end and on:
+            lag = t_us - n * self.dt_us
+            left = 2.718281828459045 ** (-lag / tau)
+        i_end = i_set
         for k in range(n):
             left *= decay
-            mv = full if i_ma == 0.0 else i_ma * (rs + rp * (1.0 - left)) * 1000.0
+            if self.ideal:
+                i_ma = i_set / 1000.0
+            else:
+                i_end = self._level_ua(ch, since + lag + (k + 1) * self.dt_us)
+                i_ma = i_end / 1000.0
+            mv = full if not on else i_ma * (rs + rp * (1.0 - left)) * 1000.0
             if mv > full:
-                mv = full
-            counts = mv * 1000.0 / uv * g + (rnd() + rnd() + rnd() - 1.5) * sig2
+                mv = full  # compliance: the output cannot drive more voltage
+            if self.ideal:  # the same operations as before the realistic model: bit for bit
+                counts = mv * 1000.0 / uv * g + (rnd() + rnd() + rnd() - 1.5) * sig2
+            else:
+                counts = mv * gain + off + (rnd() + rnd() + rnd() - 1.5) * sig2
             c = int(counts + 0.5)
-            buf[k] = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
+            c = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
+            if dnl is not None:
+                c = dnl[c]
+            if corr is not None:
+                c = correct_count(c, corr[0], corr[1])
+            buf[k] = c
+        v_end = i_end / 1000.0 * self.last_rp_kohm[ch] * 1000.0 if on else full
+        self.last_i_ua[ch] = i_end if v_end <= full else full / self.last_rp_kohm[ch]
         if self.spike[ch]:
             buf[n // 2] = ADC_MAX
             self.spike[ch] = 0

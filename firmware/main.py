@@ -5,7 +5,13 @@
 #   micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels N]
 #       [--rate HZ] [--frames N] [--seed S] [--realtime] [--start-us T]
 #       [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]
-#       [--keepalive-ms MS] [--exit-on-eof]
+#       [--keepalive-ms MS] [--exit-on-eof] [--ideal-board] [--load-ohm R]
+#       [--flash-dir DIR]
+# The simulated board has the real parts' analog errors unless --ideal-board
+# (docs/simulation.md); --load-ohm R puts a resistor on every channel instead of
+# the electrodes (the self-test's dummy load); --flash-dir is the simulated
+# board's flash: the monitor correction `steadytouch selftest` stores there
+# (vmon_cal.txt) is applied from boot on.
 # Host loss in the VM: with --exit-on-eof the simulated device stops every
 # channel and exits as soon as its stdin closes (the host process is gone);
 # the host also asks the kernel to kill it with its parent (PR_SET_PDEATHSIG).
@@ -75,12 +81,14 @@ except ImportError as e:  # on the board: a file missing from its flash (run `st
 
 USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels 1-4] [--rate 10-100]"
           " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]"
-         " [--keepalive-ms 0|%d-%d] [--exit-on-eof]" % (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
+         " [--keepalive-ms 0|%d-%d] [--exit-on-eof] [--ideal-board] [--load-ohm 100-1000000] [--flash-dir DIR]"
+         % (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
 
 
 MODE_NAMES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
               "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR, "akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST}
-_VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto", "--keepalive-ms")
+_VALUED = ("--scenario", "--channels", "--rate", "--frames", "--seed", "--start-us", "--mode", "--auto", "--keepalive-ms",
+           "--load-ohm", "--flash-dir")
 
 
 class UsageError(Exception):
@@ -100,7 +108,8 @@ def _int(opt, s, lo, hi):
 def parse(argv):
     o = {"scenario": "peel", "channels": cfg.N_CHANNELS, "rate": cfg.RATE_HZ, "frames": -1, "seed": 1,
          "realtime": False, "start": 0, "auto": None, "mode": sc.MODE_AKHTAR,
-         "keepalive_ms": hp.KEEPALIVE_DEFAULT_MS, "exit_on_eof": False}
+         "keepalive_ms": hp.KEEPALIVE_DEFAULT_MS, "exit_on_eof": False, "ideal": False, "load_ohm": 0,
+         "flash_dir": None}
     k = 0
     while k < len(argv):
         a = argv[k]
@@ -112,6 +121,10 @@ def parse(argv):
             continue
         if a == "--exit-on-eof":
             o["exit_on_eof"] = True
+            k += 1
+            continue
+        if a == "--ideal-board":
+            o["ideal"] = True
             k += 1
             continue
         if a not in _VALUED:
@@ -131,6 +144,10 @@ def parse(argv):
             o["seed"] = _int(a, v, 0, 1 << 29)
         elif a == "--start-us":
             o["start"] = _int(a, v, 0, (1 << 30) - 1)
+        elif a == "--load-ohm":
+            o["load_ohm"] = _int(a, v, 100, 1000000)
+        elif a == "--flash-dir":
+            o["flash_dir"] = v
         elif a == "--mode":
             if v not in MODE_NAMES:
                 raise UsageError("--mode must be one of %s, not %r" % (", ".join(MODE_NAMES), v))
@@ -177,7 +194,17 @@ def main_sim(argv):
         raise UsageError(str(e))
     clock = board_sim.RealClock() if o["realtime"] else board_sim.VirtualClock(o["start"])
     usb = board_sim.StdioUSB()
-    board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb)
+    correction = None
+    if o["flash_dir"]:
+        import vmon_cal
+
+        path = o["flash_dir"].rstrip("/") + "/" + vmon_cal.CAL_FILE
+        try:
+            correction = vmon_cal.load(path, o["channels"])  # None: nothing stored, the monitor uncorrected
+        except ValueError as e:
+            raise UsageError("%s: %s" % (path, e))
+    board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb, ideal=o["ideal"],
+                               load_ohm=o["load_ohm"], correction=correction)
     s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=o["keepalive_ms"])
     if o["auto"]:
         auto_start(s, o, clock.ticks_us())

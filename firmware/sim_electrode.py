@@ -53,6 +53,27 @@ class Electrode:
         return self.rs + self.rp_skin * (1.0 - math.exp(-t_us / self.tau))
 
 
+class Resistor:
+    """A dummy load in place of an electrode pair (`steadytouch selftest --load-ohm`):
+    the same interface as Electrode, a pure resistance whatever the scenario does."""
+
+    def __init__(self, r_ohm):
+        self.rs = r_ohm / 1000.0  # kohm
+        self.rp_skin = 0.0
+        self.tau = 1.0
+        self.contact = 1.0
+        self.h = 1.0
+
+    def step_hydration(self, h_target, tau_s, dt_s):
+        pass
+
+    def pulse(self, i_ua):
+        return i_ua > 0
+
+    def rp_kohm(self, i_ua, t_us):
+        return self.rs if i_ua > 0 else float("inf")
+
+
 class Scenario:
     """Contact and hydration over time, from keyframes.
 

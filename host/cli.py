@@ -76,7 +76,7 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
 
 
 def sim_meta(a, cal: Calib, m: str) -> dict:
-    return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}", "scenario": a.scenario,
+    return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
             "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
             "y_star_pc": cal.y_star_pc, **default_limits(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
@@ -102,7 +102,7 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
             if sys.stderr.isatty():
                 print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated", end="", file=sys.stderr, flush=True)
 
-        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show)
+        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board)
         if sys.stderr.isatty():
             print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
@@ -541,15 +541,29 @@ def cmd_fit(a) -> int:
 def cmd_skin(a) -> int:
     from . import skin
 
-    m = skin.fit(skin.load(a.file))
-    say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
-        f"worst misfit {m.worst_misfit:.3%} over the pulses")
-    if m.worst_misfit > 0.02:
-        say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
+    sweeps = skin.load_sweeps(a.file)
+    if len(sweeps) > 1:  # repeated sweeps: the averaged fit, its uncertainty, and whether to send it
+        i0, t0 = int(sweeps[0][0][0]), int(sweeps[0][0][1])
+        f = skin.fit_sweeps(sweeps, i0, t0)
+        m = f.model
+        say(f"{a.file}: {f.sweeps} sweeps averaged: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), "
+            f"Cp {m.cp_pf} pF; Rp shape known to {f.shape_sd:.2%} (1 sd) around I0 {i0} uA, T0 {t0} us; "
+            f"worst misfit {m.worst_misfit:.3%}")
+        if not f.trusted:
+            say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
+        args = f.args()
+    else:
+        m = skin.fit(sweeps[0])
+        say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
+            f"worst misfit {m.worst_misfit:.3%} over the pulses")
+        if m.worst_misfit > 0.02:
+            say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
+        say("one sweep: its uncertainty is unknown; repeated sweeps (a `sweep` column) let the fit judge itself")
+        args = m.args()
     if a.send:
-        _precheck("skin", *m.args(), _channel(a))
+        _precheck("skin", *args, _channel(a))
         with open_transport(a.device) as t:
-            ack = Device(t).skin(*m.args(), ch=_channel(a))
+            ack = Device(t).skin(*args, ch=_channel(a))
             say(f"{a.device}: {ack.words()}")
     return 0
 
@@ -602,6 +616,64 @@ def cmd_synth(a) -> int:
     return 0
 
 
+def cmd_selftest(a) -> int:
+    """Self-test and monitor correction on a dummy load (host/selftest.py)."""
+    import os
+    import tempfile
+
+    from . import selftest as st
+    from .simrun import sim_flash_dir
+
+    _finite("load-ohm", a.load_ohm, *st.LOAD_OHM_RANGE)
+    if a.pulses < 2 or a.pulses > 100:
+        raise st.SelfTestError(f"--pulses {a.pulses} out of range [2, 100]")
+    url = a.device
+    if url.startswith("sim://") and "load=" not in url:  # the simulated resistor in place of the electrodes
+        url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
+    sim = url.startswith("sim://")
+    old_env = os.environ.get("STEADYTOUCH_SIM_FLASH")
+    with tempfile.TemporaryDirectory() as empty:
+        if sim:  # measure the raw board: boot it without the stored correction
+            os.environ["STEADYTOUCH_SIM_FLASH"] = empty
+        try:
+            with open_transport(url) as t:
+                d = Device(t)
+                info = d.info()
+                chans = list(range(info.n_channels)) if a.channel is None else [a.channel]
+                if any(c >= info.n_channels for c in chans):
+                    raise st.SelfTestError(f"--channel {a.channel} out of range [0, {info.n_channels - 1}]")
+                pts = st.plan(a.load_ohm, info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us,
+                              info.q_max_pc, info.compliance_mv)
+                say(f"{a.device}: {len(pts)} test points x {a.pulses} pulses on {len(chans)} channel(s), "
+                    f"{a.load_ohm} ohm load ...")
+                rows = st.measure(d, pts, chans, a.pulses)
+        finally:
+            if sim:
+                if old_env is None:
+                    os.environ.pop("STEADYTOUCH_SIM_FLASH", None)
+                else:
+                    os.environ["STEADYTOUCH_SIM_FLASH"] = old_env
+    fits = [st.fit_channel(ch, rows[ch], a.load_ohm) for ch in chans]
+    for line in st.report_lines(fits, a.load_ohm):
+        say(line)
+    worst = max(f.worst_rp_err_before for f in fits)
+    if a.no_store:
+        return 0
+    if sim:
+        path = st.save(fits, sim_flash_dir())
+        say(f"stored the correction in the simulated board's flash: {path}")
+        with open_transport(url) as t:  # a reset: the board reads it at boot
+            d = Device(t)
+            check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
+            rows = st.measure(d, check, chans, a.pulses)
+        after = max(float(max(abs(v * 1000.0 / i / a.load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
+        say(f"after a reset, with the stored correction: worst Rp error {after:.2%} (was {worst:.2%})")
+    else:
+        path = st.save(fits, Path(a.save_dir))
+        say(f"wrote {path}; copy it to the board's flash (mpremote cp {path} :{st.CAL_FILE}) and reset it")
+    return 0
+
+
 # ------------------------------------------------------------ parser
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors in one line (and a pointer to --help)."""
@@ -633,6 +705,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--out", default="out", help="folder for the CSV and PNG files (default: out/)")
     s.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    s.add_argument("--ideal-board", action="store_true", help="the ideal board instead of the one with the real "
+                   "parts' errors (DAC steps, ADC noise and DNL, monitor gain/offset; docs/simulation.md)")
     for k, v in (("--i0-ua", 1000), ("--t0-us", 1000), ("--x-star-ohm", -1670), ("--y-star-pc", 186000)):
         s.add_argument(k, type=int, default=v)
 
@@ -735,7 +809,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print the results as JSON")
 
     s = add("skin", cmd_skin, "fit MODE_FAST's electrode model (Rs, beta, Cp) to calibration pulses; --send sets it",
-            "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm)\n"
+            "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm; optional sweep: repeated sweeps, averaged)\n"
             "  steadytouch skin exp1.csv --send --channel 0 --device hid://1209:0001")
     s.add_argument("file", help="CSV with i_ua, t_us, rp_ohm per pulse (one person, one site)")
     s.add_argument("--send", action="store_true", help="send the fitted model to the device (disarmed)")
@@ -756,6 +830,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--x-star-ohm", type=float, default=-1670.0)
     s.add_argument("--y-star-pc", type=float, default=186000.0)
     s.add_argument("--rp-noise", type=float, default=0.01, help="relative Rp measurement noise (default 0.01)")
+
+    s = add("selftest", cmd_selftest, "first-run self-test on a resistor in place of the electrodes: fits the "
+            "monitor's gain and offset, reports linearity and worst error, stores the correction",
+            "  steadytouch selftest --load-ohm 10000 --device sim://steady\n"
+            "  steadytouch selftest --load-ohm 10000 --device hid://1209:0001 --save-dir cal/")
+    s.add_argument("--load-ohm", type=int, required=True, help="the dummy load's resistance (1000-100000 ohm)")
+    s.add_argument("--channel", type=int, default=None, help="one channel (default: all)")
+    s.add_argument("--pulses", type=int, default=8, help="pulses per test point (default 8)")
+    s.add_argument("--no-store", action="store_true", help="report only")
+    s.add_argument("--save-dir", default=".", help="a board: folder for vmon_cal.txt (default: here)")
 
     add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
         "  steadytouch devices", device=False)

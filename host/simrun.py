@@ -115,6 +115,28 @@ def vm_popen(args, **kw):
     return subprocess.Popen(args, env=env, preexec_fn=die_with_parent, **kw)
 
 
+def sim_flash_dir() -> Path:
+    """The simulated board's flash (what survives its reset: `steadytouch selftest`'s
+    monitor correction): $STEADYTOUCH_SIM_FLASH, else $XDG_STATE_HOME/steadytouch/sim-flash
+    (~/.local/state/steadytouch/sim-flash)."""
+    d = os.environ.get("STEADYTOUCH_SIM_FLASH")
+    if d:
+        return Path(d)
+    state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(state) / "steadytouch" / "sim-flash"
+
+
+def board_args(ideal: bool = False, load_ohm: int = 0) -> list[str]:
+    """The simulated board's options for firmware/main.py: the realistic analog path
+    (default) or the ideal one, a dummy load, and its flash folder."""
+    args = ["--flash-dir", str(sim_flash_dir())]
+    if ideal:
+        args.append("--ideal-board")
+    if load_ohm:
+        args += ["--load-ohm", str(load_ohm)]
+    return args
+
+
 @dataclass
 class Calib:
     i0_ua: int = 1000
@@ -124,9 +146,10 @@ class Calib:
 
 
 def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: int = 1, frames: int | None = None,
-                 timeout: float = 3600, progress=None):
+                 timeout: float = 3600, progress=None, ideal: bool = False):
     """All IN reports of one run (virtual clock), decoded. progress(t_s) is called as
-    simulated time advances (about every 0.2 s of wall time)."""
+    simulated time advances (about every 0.2 s of wall time). ideal: the ideal board
+    instead of the one with the real parts' errors (docs/simulation.md)."""
     import time
 
     if not FIRMWARE.is_dir():
@@ -134,7 +157,7 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
     # a scripted run on the virtual clock with no host: keep-alive off (docs/safety.md)
     args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--mode", mode,
             "--channels", str(channels), "--seed", str(seed), "--keepalive-ms", "0", "--exit-on-eof",
-            "--auto", f"{cal.i0_ua},{cal.t0_us},{cal.x_star_ohm},{cal.y_star_pc}"]
+            "--auto", f"{cal.i0_ua},{cal.t0_us},{cal.x_star_ohm},{cal.y_star_pc}"] + board_args(ideal)
     if frames:
         args += ["--frames", str(frames)]
     p = vm_popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)

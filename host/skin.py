@@ -104,3 +104,98 @@ def fit(pulses) -> SkinModel:
     m = SkinModel(round(rs), round(beta * 65536), round(math.exp(lc)), math.exp(ls), 0.0)
     m.worst_misfit = float(np.max(np.abs(rp_ohm(i, t, m.rs_ohm, m.beta, m.s_ohm, m.cp_pf) / r - 1.0)))
     return m
+
+
+# ---- repeated sweeps: an averaged fit that knows its own uncertainty ----
+TRUST_SHAPE_SD = 0.01  # the model is sent only if its predicted Rp shape is known to 1 % (1 sd) ...
+TRUST_MISFIT = 0.02  # ... and it fits the averaged pulses within 2 %
+
+
+@dataclass
+class SweepFit:
+    """A model fitted to the mean of repeated calibration sweeps, and how well it is known.
+
+    shape_sd: the largest standard error, over the operating region, of the model's
+    Rp(I, T) / Rp(I0, T0) (what MODE_FAST extrapolates with: the device re-anchors
+    the scale), from the fits to each sweep alone (sd of the mean: spread / sqrt(n)).
+    trusted: whether to send it; otherwise MODE_FAST runs model-free (the host decides)."""
+
+    model: SkinModel | None
+    sweeps: int
+    shape_sd: float
+    misfit: float
+    trusted: bool
+    why: str
+
+    def args(self) -> tuple[int, int, int]:
+        """What to send with set_skin: the model, or (0, 0, 0) = none (model-free step)."""
+        return self.model.args() if self.trusted else (0, 0, 0)
+
+
+def _shape(m: SkinModel, i0_ua, t0_us, grid):
+    i, t = grid
+    return rp_ohm(i, t, m.rs_ohm, m.beta, m.s_ohm, m.cp_pf) / float(rp_ohm(i0_ua, t0_us, m.rs_ohm, m.beta, m.s_ohm,
+                                                                           m.cp_pf))
+
+
+def operating_grid(i0_ua: int, t0_us: int, t_max_us: int = 8000):
+    """(I, T) where MODE_FAST uses the model: along and around the calibration's mE
+    curve, T from 50 us to t_max, I from I0/4 to 4 I0."""
+    me = i0_ua * i0_ua * t0_us
+    ts = np.geomspace(50, t_max_us, 12)
+    pts = [(math.sqrt(me / t) * f, t) for t in ts for f in (0.5, 1.0, 2.0)]
+    pts = [(i, t) for i, t in pts if i0_ua / 4 <= i <= 4 * i0_ua]
+    return np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
+
+
+def fit_sweeps(sweeps, i0_ua: int, t0_us: int, t_max_us: int = 8000) -> SweepFit:
+    """sweeps: a list of repeated sweeps, each a list of (i_ua, t_us, rp_ohm) over the
+    same pulses. Fits the per-pulse mean; the uncertainty comes from fitting each sweep."""
+    if not sweeps:
+        raise SkinFitError("no sweeps")
+    pulses = [(i, t) for i, t, _ in sweeps[0]]
+    if any([(i, t) for i, t, _ in s] != pulses for s in sweeps):
+        raise SkinFitError("every sweep must have the same pulses in the same order")
+    mean = [(i, t, float(np.mean([s[k][2] for s in sweeps]))) for k, (i, t) in enumerate(pulses)]
+    m = fit(mean)
+    grid = operating_grid(i0_ua, t0_us, t_max_us)
+    if len(sweeps) >= 3:
+        shapes = np.array([_shape(fit(s), i0_ua, t0_us, grid) for s in sweeps])
+        sd = float(np.max(np.std(shapes, axis=0, ddof=1) / np.sqrt(len(sweeps)) / np.mean(shapes, axis=0)))
+    else:
+        sd = float("inf")  # cannot tell: not sent
+    why = ""
+    if sd > TRUST_SHAPE_SD:
+        why = f"its Rp shape is known only to {sd:.2%} (limit {TRUST_SHAPE_SD:.0%}, {len(sweeps)} sweeps)"
+    elif m.worst_misfit > TRUST_MISFIT:
+        why = f"it misses the averaged pulses by up to {m.worst_misfit:.2%} (limit {TRUST_MISFIT:.0%})"
+    return SweepFit(m, len(sweeps), sd, m.worst_misfit, not why, why)
+
+
+WIDE_T_US = (100, 150, 200, 300, 400, 500, 700, 1000, 1500, 2000, 3000)
+
+
+def sweep_wide(i0_ua: int, t0_us: int, t_max_us: int = 8000) -> list[tuple[int, int]]:
+    """Like sweep(), same mE, over 100-3000 us: the wider the durations, the better beta,
+    Cp and Rs are told apart (MODE_FAST extrapolates to where a step takes the pulse)."""
+    me = i0_ua * i0_ua * t0_us
+    return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in WIDE_T_US if t != t0_us and t <= t_max_us]
+
+
+def load_sweeps(path) -> list[list[tuple[float, float, float]]]:
+    """Repeated sweeps from a CSV with i_ua, t_us, rp_ohm and a `sweep` column (rows of
+    one sweep share its value; every sweep the same pulses in the same order). Without
+    a `sweep` column: one sweep."""
+    from .files import csv_rows, read_text_file
+
+    rows = load(path)
+    table = csv_rows(path, read_text_file(path, "CSV file"))
+    head = [h.strip() for h in table[0]]
+    if "sweep" not in head:
+        return [rows]
+    j = head.index("sweep")
+    ids = [r[j].strip() if j < len(r) else "" for r in table[1:] if any(c.strip() for c in r)]
+    groups: dict[str, list] = {}
+    for sid, row in zip(ids, rows):
+        groups.setdefault(sid, []).append(row)
+    return list(groups.values())

@@ -3,9 +3,11 @@ pyserial's `loop://` handlers).
 
 - `hid://VID:PID[/SERIAL]` — the board over USB HID, through hidapi
   (hidraw backend on Linux when available). Default: `hid://1209:0001`.
-- `sim://SCENARIO[?channels=N&seed=S&realtime=0|1&auto=I0,T0,X,Y&mode=akhtar|open]`
+- `sim://SCENARIO[?channels=N&seed=S&realtime=0|1&auto=I0,T0,X,Y&mode=akhtar|open&board=ideal&load=OHMS]`
   — the real firmware in the MicroPython VM with the simulated board, speaking
-  the same report stream on its stdio.
+  the same report stream on its stdio. The board has the real parts' analog
+  errors unless `board=ideal`; `load=OHMS` puts a resistor in place of the
+  electrodes (the self-test's dummy load).
 - `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y]` — the real MicroPython rp2
   firmware on the emulated Pico (rp2040js, ../shared/emulator): its main loop
   (main_rp2) over its USB HID interface, the simulated electrode on its ADC.
@@ -127,13 +129,14 @@ class SimTransport(Transport):
     """The firmware in the MicroPython VM; reports over its stdin/stdout."""
 
     def __init__(self, scenario: str, channels: int = 2, seed: int = 1, realtime: bool = True,
-                 auto: str | None = None, mode: str = "akhtar", frames: int | None = None):
-        from .simrun import FIRMWARE, micropython_exe, vm_popen
+                 auto: str | None = None, mode: str = "akhtar", frames: int | None = None,
+                 ideal: bool = False, load_ohm: int = 0):
+        from .simrun import FIRMWARE, board_args, micropython_exe, vm_popen
 
         self.url = f"sim://{scenario}"
         self.realtime = realtime
         args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--channels", str(channels),
-                "--seed", str(seed), "--mode", mode, "--exit-on-eof"]
+                "--seed", str(seed), "--mode", mode, "--exit-on-eof"] + board_args(ideal, load_ohm)
         if realtime:
             args.append("--realtime")  # the board's keep-alive, on the host's time line
         else:
@@ -429,6 +432,15 @@ def open_transport(url: str, hid_module=None) -> Transport:
             frames = int(_flag(q, "frames", "0")) or None
         except ValueError:
             raise TransportError(f"bad device URL {url!r}: channels, seed and frames take whole numbers") from None
+        try:
+            load_ohm = int(_flag(q, "load", "0"))
+        except ValueError:
+            raise TransportError(f"bad device URL {url!r}: load takes a whole number of ohms, e.g. load=10000") from None
+        if load_ohm and not 100 <= load_ohm <= 1_000_000:
+            raise TransportError(f"bad device URL {url!r}: load={load_ohm} ohm out of range [100, 1000000]")
+        board = _flag(q, "board", "real")
+        if board not in ("real", "ideal"):
+            raise TransportError(f"bad device URL {url!r}: board is real (the parts' errors, default) or ideal")
         realtime = _flag(q, "realtime", "1") not in ("0", "no", "false")
         from .simrun import SimError, scenario_keys
 
@@ -439,7 +451,8 @@ def open_transport(url: str, hid_module=None) -> Transport:
         mode = _flag(q, "mode", "akhtar")
         if mode not in ("akhtar", "fast", "open", "charge", "energy", "pwlinear"):
             raise TransportError(f"bad device URL {url!r}: mode is akhtar, fast, open, charge, energy or pwlinear")
-        return SimTransport(scenario, channels, seed, realtime, _flag(q, "auto", None), mode, frames)
+        return SimTransport(scenario, channels, seed, realtime, _flag(q, "auto", None), mode, frames,
+                            board == "ideal", load_ohm)
     if u.scheme == "emu+tcp":
         try:
             port = u.port

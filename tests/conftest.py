@@ -67,3 +67,16 @@ def run_mp(micropython: str, script: Path, path: list[Path], stdin: str = "", ti
     return subprocess.run(
         [micropython, str(script), *args], input=stdin, capture_output=True, text=True, timeout=timeout, env=env
     )
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _sim_flash(tmp_path_factory):
+    """sim:// boots with the correction stored in its flash folder (steadytouch selftest):
+    tests use an empty one of their own, never the user's."""
+    old = os.environ.get("STEADYTOUCH_SIM_FLASH")
+    os.environ["STEADYTOUCH_SIM_FLASH"] = str(tmp_path_factory.mktemp("sim-flash"))
+    yield
+    if old is None:
+        os.environ.pop("STEADYTOUCH_SIM_FLASH", None)
+    else:
+        os.environ["STEADYTOUCH_SIM_FLASH"] = old

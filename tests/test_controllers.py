@@ -125,3 +125,34 @@ def test_fast_mode_halves_the_papers_error_under_a_drift(name):
     f = bench.metrics(*bench.run(sc.MODE_FAST, ev, n), ev, n)
     assert f["rms_q"] <= a["rms_q"] / 2, (f["rms_q"], a["rms_q"])
     assert f["over_i"] <= 0.05 and f["over_q"] <= 0.05
+
+
+def test_repeated_sweeps_fit_reports_its_uncertainty_and_refuses_a_model_it_cannot_trust():
+    import numpy as np
+    from steadytouch import skin
+
+    e = bench.Electrode()
+    rng = np.random.default_rng(1)
+    pts = skin.sweep_wide(1000, 1000)
+
+    def sweeps(n, noise):
+        return [[(i, t, round(e.rp_kohm(i, t) * 1000 * (1 + noise * rng.normal()))) for i, t in pts] for _ in range(n)]
+
+    good = skin.fit_sweeps(sweeps(5, 0.003), 1000, 1000)
+    assert good.trusted and good.shape_sd < skin.TRUST_SHAPE_SD and good.args() == good.model.args()
+    bad = skin.fit_sweeps(sweeps(5, 0.05), 1000, 1000)  # 5 % noise: the shape is not known
+    assert not bad.trusted and bad.shape_sd > skin.TRUST_SHAPE_SD and bad.args() == (0, 0, 0)
+    assert "known only to" in bad.why
+    assert not skin.fit_sweeps(sweeps(2, 0.0), 1000, 1000).trusted  # 2 sweeps cannot tell their spread
+
+
+def test_on_the_realistic_board_the_averaged_trusted_model_surges_less_than_one_sweep_sent_as_is():
+    """Issue 13, deliverable 5 on unseen electrodes read through the realistic board (with
+    the self-test correction): averaging 10 sweeps and the host's trust check give no more
+    steps with a felt surge above 5 % after the first corrected pulse than one sweep sent as
+    is, and the controller reaches 1 % of its measured target in a median of <= 3 pulses.
+    (The goal, no such surge at all, does not hold yet: docs/performance.md.)"""
+    res, trust, _ = bench.study(4, "real", 10, True)
+    avg, one = res["fast, averaged sweeps + trust"], res["fast, 1 sweep (sent as is)"]
+    assert sum(s > 0.05 for s in avg["surge"]) <= sum(s > 0.05 for s in one["surge"])
+    assert sorted(avg["seen"])[len(avg["seen"]) // 2] <= 3  # median pulses to 1 % of the measured target

@@ -1,0 +1,60 @@
+# The voltage monitor's correction that `steadytouch selftest` finds on a dummy
+# load and stores in the board's flash as vmon_cal.txt (docs/simulation.md,
+# "Dummy load and the self-test"): measured mV = gain x true mV + offset, per
+# channel. Read once at boot (load); applying it is integer-only with every
+# intermediate < 2**30 (correct), and monotonic, so correcting the peak of a
+# pulse equals correcting every sample before the peak search.
+# Used by the simulated board (board_sim) today; on the rp2, board_rp2 would
+# load it at boot the same way (not wired yet).
+CAL_HEADER = "steadytouch monitor correction v1"
+CAL_FILE = "vmon_cal.txt"
+CAL_GAIN_PPM = (900000, 1100000)  # accepted monitor gain (measured/true) in ppm
+CAL_OFFSET_MV = (-2000, 2000)  # accepted monitor offset (electrode-referred mV)
+ADC_MAX = 4095
+
+
+def parse(text, n_channels):
+    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV` per channel.
+    Returns [(gain_ppm, offset_mv) or None per channel]; ValueError names the line."""
+    lines = text.splitlines()
+    if not lines or lines[0].strip() != CAL_HEADER:
+        raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
+    out = [None] * n_channels
+    for k in range(1, len(lines)):
+        ln = lines[k].strip()
+        if not ln or ln[0] == "#":
+            continue
+        parts = ln.split()
+        try:
+            ch, g, off = int(parts[0]), int(parts[1]), int(parts[2])
+        except (ValueError, IndexError):
+            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV" % (k + 1))
+        if not (CAL_GAIN_PPM[0] <= g <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= off <= CAL_OFFSET_MV[1]):
+            raise ValueError("correction file line %d: gain %d ppm or offset %d mV out of range [%d, %d] / [%d, %d]"
+                             % (k + 1, g, off, CAL_GAIN_PPM[0], CAL_GAIN_PPM[1], CAL_OFFSET_MV[0], CAL_OFFSET_MV[1]))
+        if 0 <= ch < n_channels:
+            out[ch] = (g, off)
+    return out
+
+
+def load(path, n_channels):
+    """parse() of the file at path; None when there is none (the monitor is used uncorrected)."""
+    try:
+        with open(path) as f:
+            text = f.read()
+    except OSError:
+        return None
+    return parse(text, n_channels)
+
+
+def terms(gain_ppm, offset_mv, uv_per_count):
+    """(k_q13, off_q4) for correct(): 1/gain in Q13 (gain taken to 100 ppm), the offset in
+    1/16 ADC counts. Every intermediate < 2**30 within CAL_GAIN_PPM / CAL_OFFSET_MV."""
+    g = gain_ppm // 100
+    return (8192 * 10000 + g // 2) // g, (offset_mv * 32000 + uv_per_count) // (2 * uv_per_count)
+
+
+def correct(c, k_q13, off_q4):
+    """One ADC count with the monitor's offset and gain taken out, clipped to 0..4095."""
+    v = ((c * 16 - off_q4) * k_q13 + 65536) >> 17
+    return 0 if v < 0 else (ADC_MAX if v > ADC_MAX else v)

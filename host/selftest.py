@@ -1,0 +1,160 @@
+"""First-run self-test and gain calibration on a dummy load (`steadytouch selftest`).
+
+With a resistor R in place of the electrodes, every pulse should read Vp = I R.
+The self-test pulses each channel across currents and widths (open loop, a few
+pulses per point), fits  Vp_measured = G (I R) + offset  by least squares
+(numpy), reports the linearity (residuals) and the worst Rp error before and
+after the correction, and stores the correction where the firmware reads it at
+boot (the simulated board: `vmon_cal.txt` in its flash folder, see
+simrun.sim_flash_dir; a board: the same file, copied to its flash).
+
+What a resistor can and cannot tell (docs/simulation.md, "Self-test"): the
+measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor sees
+the DAC's gain and the monitor's gain only as their product G ("path gain").
+Correcting the monitor by G makes Rp = Vp / I exact, which is what the
+controller measures against; the DAC's own share, the error of the charge
+actually delivered, needs a second reference (a scope across the load).
+Units: uA, us, mV, ohm; gains in ppm in the stored file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import hid_protocol as hp
+import sensation_core as sc
+
+CAL_FILE = "vmon_cal.txt"  # firmware/vmon_cal.py CAL_FILE
+CAL_HEADER = "steadytouch monitor correction v1"  # firmware/vmon_cal.py CAL_HEADER
+GAIN_PPM_RANGE = (900_000, 1_100_000)  # what the firmware accepts (vmon_cal.CAL_GAIN_PPM)
+OFFSET_MV_RANGE = (-2000, 2000)
+LOAD_OHM_RANGE = (1000, 100_000)
+CURRENTS_UA = (500, 1000, 2000, 3000, 4500, 6000, 8000)
+WIDTHS_US = (100, 300, 1000)
+VP_MAX_PERMILLE = 850  # stay below 85 % of compliance (the electrode-off check is at 95 %)
+
+
+class SelfTestError(ValueError):
+    """The self-test cannot run or its result is out of range; the message says why."""
+
+
+@dataclass
+class ChannelFit:
+    channel: int
+    gain: float  # measured / true (DAC gain x monitor gain)
+    offset_mv: float
+    n: int
+    linearity_pct_fs: float  # largest residual of the straight line, % of the largest Vp
+    worst_rp_err_before: float  # largest |Rp - R| / R with the board as it is
+    worst_rp_err_after: float  # ... with the correction applied
+    worst_point_err_after: float  # largest |mean Rp of a test point - R| / R, corrected (noise averaged)
+    rows: list = field(default_factory=list, repr=False)
+
+    @property
+    def gain_ppm(self) -> int:
+        return round(self.gain * 1e6)
+
+    def in_range(self) -> bool:
+        return (GAIN_PPM_RANGE[0] <= self.gain_ppm <= GAIN_PPM_RANGE[1]
+                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1])
+
+
+def plan(load_ohm: int, i_min_ua: int, i_max_ua: int, t_min_us: int, t_max_us: int, q_max_pc: int,
+         compliance_mv: int) -> list[tuple[int, int]]:
+    """(I, T) points within the soft limits whose voltage on the load stays below 85 % of compliance."""
+    v_max = compliance_mv * VP_MAX_PERMILLE // 1000
+    pts = [(i, t) for i in CURRENTS_UA for t in WIDTHS_US
+           if i_min_ua <= i <= i_max_ua and t_min_us <= t <= t_max_us and i * t <= q_max_pc
+           and i * load_ohm // 1000 <= v_max]
+    if len({i for i, _ in pts}) < 3:
+        raise SelfTestError(f"load {load_ohm} ohm: fewer than 3 test currents fit the limits and "
+                            f"{v_max / 1000:g} V (85 % of compliance); use a smaller load, e.g. --load-ohm 10000")
+    return pts
+
+
+def fit_channel(ch: int, rows, load_ohm: float) -> ChannelFit:
+    """rows: (i_ua, t_us, vp_mv) of one channel on the load. Least squares of
+    vp = G (i R / 1000) + offset."""
+    a = np.asarray(rows, float)
+    if a.ndim != 2 or len(a) < 3 or len(set(a[:, 0])) < 2:
+        raise SelfTestError(f"ch{ch}: not enough pulses to fit (got {len(a)}; need 2 currents or more)")
+    i, t, vp = a.T
+    v_true = i * load_ohm / 1000.0
+    (g, off), *_ = np.linalg.lstsq(np.column_stack([v_true, np.ones_like(v_true)]), vp, rcond=None)
+    res = vp - (g * v_true + off)
+    rp_before = vp * 1000.0 / i
+    rp_after = (vp - off) / g * 1000.0 / i
+    pts = {(x, y) for x, y in zip(i, t)}
+    point_err = max(abs(float(np.mean(rp_after[(i == x) & (t == y)])) / load_ohm - 1) for x, y in pts)
+    return ChannelFit(ch, float(g), float(off), len(a), float(np.max(np.abs(res)) / np.max(vp) * 100),
+                      float(np.max(np.abs(rp_before / load_ohm - 1))), float(np.max(np.abs(rp_after / load_ohm - 1))),
+                      point_err, [tuple(r) for r in a])
+
+
+def correction_text(fits: list[ChannelFit]) -> str:
+    lines = [CAL_HEADER, "# CH GAIN_PPM OFFSET_MV: measured mV = gain x true mV + offset (steadytouch selftest)"]
+    lines += [f"{f.channel} {f.gain_ppm} {round(f.offset_mv)}" for f in fits]
+    return "\n".join(lines) + "\n"
+
+
+def measure(d, points, channels: list[int], pulses: int = 8, timeout_s: float = 10.0):
+    """Pulse every channel at each (I, T) point in open loop; {ch: [(i_ua, t_us, vp_mv), ...]}.
+    Leaves the device disarmed (Device.live disarms on any exit)."""
+    from .protocol import Telemetry
+
+    rows: dict[int, list] = {ch: [] for ch in channels}
+    d.disarm()
+    d.mode(sc.MODE_OPEN_LOOP)
+    import time
+
+    for i_ua, t_us in points:
+        d.disarm()
+        d.calibrate(i_ua, t_us, 0, 0)  # open loop: every pulse is (I0, T0); x*, y* unused
+        got = {ch: 0 for ch in channels}
+        with d.live(arm=hp.CH_ALL):
+            end = time.monotonic() + timeout_s
+            while min(got.values()) < pulses:
+                if time.monotonic() > end:
+                    raise SelfTestError(f"no pulses at {i_ua} uA, {t_us} us within {timeout_s:g} s: "
+                                        "is the load connected and the device running?")
+                rep = d.read(0.5)
+                if not isinstance(rep, Telemetry) or rep.channel not in got or rep.t_us != t_us:
+                    continue
+                if rep.stop not in (hp.STOP_NONE,) or not rep.i_ua:
+                    raise SelfTestError(f"ch{rep.channel} stopped at {i_ua} uA, {t_us} us "
+                                        f"(stop reason {rep.stop}): is the load connected?")
+                if got[rep.channel] < pulses:
+                    rows[rep.channel].append((rep.i_ua, rep.t_us, rep.vp_mv))
+                    got[rep.channel] += 1
+    return rows
+
+
+def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
+    out = [f"self-test on a {load_ohm} ohm load: Vp = G (I R) + offset, least squares per channel",
+           " ch | pulses | path gain G | offset mV | linearity (% of max Vp) | worst Rp error: before -> after"
+           " (mean of a point)"]
+    for f in fits:
+        out.append(f"{f.channel:3d} | {f.n:6d} | {f.gain:11.4f} | {f.offset_mv:9.0f} | {f.linearity_pct_fs:23.2f} | "
+                   f"{f.worst_rp_err_before:7.2%} -> {f.worst_rp_err_after:.2%} ({f.worst_point_err_after:.2%})")
+    out.append("G = DAC gain x monitor gain (one resistor sees only their product; correcting the monitor by G "
+               "makes Rp = Vp/I exact)")
+    return out
+
+
+def save(fits: list[ChannelFit], folder: Path) -> Path:
+    bad = [f for f in fits if not f.in_range()]
+    if bad:
+        f = bad[0]
+        raise SelfTestError(f"ch{f.channel}: gain {f.gain:.4f} or offset {f.offset_mv:.0f} mV out of the accepted "
+                            f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}] / "
+                            f"[{OFFSET_MV_RANGE[0]}, {OFFSET_MV_RANGE[1]}] mV: check the load's value and wiring; "
+                            "nothing was stored")
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / CAL_FILE
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(correction_text(fits))
+    tmp.replace(path)
+    return path

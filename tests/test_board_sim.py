@@ -1,0 +1,131 @@
+"""The simulated board's analog path (firmware/board_sim.py): the realistic errors
+it claims (docs/simulation.md, "The realistic board") and the ideal switch."""
+
+import math
+import statistics
+import sys
+
+import pytest
+
+from conftest import FIRMWARE, SHARED
+
+sys.path[:0] = [str(FIRMWARE), str(SHARED)]
+import board_config as cfg  # noqa: E402
+import board_sim  # noqa: E402
+import sim_electrode  # noqa: E402
+
+
+def board(ideal=False, load_ohm=0, correction=None, noise=None, seed=3):
+    return board_sim.SimBoard(cfg, board_sim.VirtualClock(), sim_electrode.scenario("steady"), 2, seed,
+                              ideal=ideal, load_ohm=load_ohm, correction=correction, noise_counts=noise)
+
+
+@pytest.mark.parametrize("i_ua", [0, 1, 2, 3, 500, 999, 1000, 1001, 2670, 4096, 9997, 9998, 9999, 10000])
+def test_set_amplitude_returns_code_times_lsb_never_above_the_command(i_ua):
+    b = board()
+    got = b.set_amplitude(0, i_ua)
+    code = min(i_ua * 4096 // cfg.AMP_UA_AT_FULL, 4095)
+    assert got == code * cfg.AMP_UA_AT_FULL // 4096
+    assert 0 <= i_ua - got <= math.ceil(cfg.AMP_UA_AT_FULL / 4096) or i_ua >= 9998
+    assert board(ideal=True).set_amplitude(0, i_ua) == i_ua
+
+
+def test_dac_steps_are_at_most_2_5_ua():
+    b = board()
+    codes = sorted({b.analog.code(i) for i in range(0, 10001)})
+    assert codes == list(range(4096))  # every code reachable: steps of one LSB
+    assert cfg.AMP_UA_AT_FULL / 4096 <= 2.5
+    for i in range(0, 10001, 7):  # reported: code x LSB in whole uA (rounded down)
+        assert 0 <= b.analog.code(i) * cfg.AMP_UA_AT_FULL / 4096 - b.set_amplitude(0, i) < 1
+
+
+def test_the_dac_settles_first_order_in_its_datasheet_time():
+    b = board()
+    b.set_amplitude(0, 1000)
+    b.clock.advance(20000)
+    b.set_amplitude(0, 3000)
+    target = b.analog.physical_ua(0, b.code[0])
+    start = b.analog.physical_ua(0, b.analog.code(1000))
+    assert abs(b._level_ua(0, 0) - start) < 1e-9
+    half_lsb = cfg.AMP_UA_AT_FULL / 4096 / 2
+    assert abs(b._level_ua(0, board_sim.DAC_SETTLE_US) - target) <= half_lsb * 1.01
+    assert abs(b._level_ua(0, board_sim.DAC_SETTLE_US / 2) - target) > half_lsb
+
+
+def _pulse_counts(b, ch, i_ua, t_us):
+    b.set_amplitude(ch, i_ua)
+    b.clock.advance(20000)
+    n = b.fire(ch, t_us)
+    return list(b.adc[ch][:n])
+
+
+def test_adc_noise_is_the_datasheet_enob_and_the_ideal_board_keeps_1_5_counts():
+    for ideal, sigma in ((False, 2.84), (True, 1.5)):
+        b = board(ideal=ideal, load_ohm=10000)
+        xs = []
+        for _ in range(40):
+            xs += _pulse_counts(b, 0, 1700, 2000)  # ~17 V, ~620 counts: away from the DNL codes
+        assert abs(statistics.pstdev(xs) - sigma) < 0.12 * sigma, (ideal, statistics.pstdev(xs))
+
+
+def test_e11_dnl_codes_are_wide_and_their_neighbours_missing():
+    b = board(noise=3.0, load_ohm=10000)
+    seen = {}
+    # sweep the input through 512 counts (13.8 V at 27 mV/count): 1.30 .. 1.44 mA on 10 kohm
+    for i in range(1300, 1440, 2):
+        for c in _pulse_counts(b, 0, i, 400):
+            seen[c] = seen.get(c, 0) + 1
+    h = board_sim.ADC_DNL_WIDTH // 2
+    assert seen.get(512, 0) > 4 * max(seen.get(c, 0) for c in (500, 501, 523, 524))
+    for c in list(range(512 - h, 512)) + list(range(513, 513 + h)):
+        assert c not in seen
+    ideal = board(ideal=True, load_ohm=10000)
+    seen_i = set()
+    for i in range(1300, 1440, 2):
+        seen_i.update(_pulse_counts(ideal, 0, i, 400))
+    assert set(range(512 - h, 513 + h)) <= seen_i
+
+
+def test_monitor_gain_and_offset_error_per_channel_and_compliance_clipping():
+    b = board(noise=0.0, load_ohm=10000)
+    for ch in (0, 1):
+        counts = _pulse_counts(b, ch, 4000, 500)
+        i_phys = b.analog.physical_ua(ch, b.analog.code(4000))
+        v_mv = i_phys * 10.0  # uA x 10 kohm = mV
+        want = v_mv * board_sim.MON_GAIN[ch] * 1000 / cfg.VMON_UV_PER_COUNT + board_sim.MON_OFFSET_MV[ch] * 1000 / cfg.VMON_UV_PER_COUNT
+        assert abs(counts[-1] - want) <= 1
+    b = board(noise=0.0, load_ohm=20000)
+    clipped = _pulse_counts(b, 0, 6000, 500)  # 120 V on 20 kohm: clipped at the 100 V compliance
+    full = cfg.COMPLIANCE_MV * board_sim.MON_GAIN[0] * 1000 / cfg.VMON_UV_PER_COUNT
+    assert abs(max(clipped) - (full + board_sim.MON_OFFSET_MV[0] * 1000 / cfg.VMON_UV_PER_COUNT)) <= 1
+    assert abs(b.last_i_ua[0] - cfg.COMPLIANCE_MV / 20.0) < 1e-6  # the current a clipped output really drives
+
+
+def test_the_stored_correction_takes_out_gain_and_offset():
+    g = [round(board_sim.MON_GAIN[k] * board_sim.DAC_GAIN[k] * 1e6) for k in (0, 1)]
+    b = board(noise=0.0, load_ohm=10000, correction=[(g[0], board_sim.MON_OFFSET_MV[0]), (g[1], board_sim.MON_OFFSET_MV[1])])
+    for ch in (0, 1):
+        for i in (800, 3000, 7000):
+            counts = _pulse_counts(b, ch, i, 300)
+            true = b.analog.delivered_ua(b.analog.code(i)) * 10.0 * 1000 / cfg.VMON_UV_PER_COUNT
+            assert abs(counts[-1] - true) <= 1.5, (ch, i, counts[-1], true)
+
+
+def test_correction_integers_stay_below_2_30_at_the_accepted_extremes():
+    for gppm in board_sim.CAL_GAIN_PPM:
+        for off in board_sim.CAL_OFFSET_MV:
+            k, o = board_sim.correction_terms(gppm, off, cfg.VMON_UV_PER_COUNT)
+            for c in (0, board_sim.ADC_MAX):
+                assert abs((c * 16 - o) * k + 65536) < 2**30
+                assert 0 <= board_sim.correct_count(c, k, o) <= board_sim.ADC_MAX
+
+
+@pytest.mark.parametrize("text, words", [
+    ("", "first line"),
+    (board_sim.CAL_HEADER + "\n0 1000000\n", "line 2"),
+    (board_sim.CAL_HEADER + "\n0 2000000 0\n", "out of range"),
+    (board_sim.CAL_HEADER + "\n0 1000000 5000\n", "out of range"),
+])
+def test_a_bad_correction_file_is_refused_naming_the_line(text, words):
+    with pytest.raises(ValueError, match=words):
+        board_sim.parse_correction(text, 2)

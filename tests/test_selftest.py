@@ -1,0 +1,140 @@
+"""`steadytouch selftest --load-ohm R`: the fit, and end to end on sim:// with the
+simulated resistor (the realistic board's gain and offset errors, found and stored)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import FIRMWARE, ROOT
+
+sys.path.insert(0, str(FIRMWARE))
+import board_sim  # noqa: E402
+
+from steadytouch import selftest as st  # noqa: E402
+
+EXE = str(Path(sys.executable).parent / "steadytouch")
+
+
+def test_fit_recovers_gain_and_offset_from_noisy_pulses():
+    rng = np.random.default_rng(5)
+    rows = [(i, t, 1.013 * i * 10.0 + 140 + rng.normal(0, 40)) for i in st.CURRENTS_UA for t in st.WIDTHS_US
+            for _ in range(8)]
+    f = st.fit_channel(0, rows, 10000)
+    assert abs(f.gain - 1.013) < 0.002 and abs(f.offset_mv - 140) < 20
+    assert f.worst_rp_err_after < f.worst_rp_err_before
+    assert f.in_range()
+    assert st.correction_text([f]).splitlines()[2] == f"0 {f.gain_ppm} {round(f.offset_mv)}"
+    # the firmware reads back what the host writes
+    assert board_sim.parse_correction(st.correction_text([f]), 2) == [(f.gain_ppm, round(f.offset_mv)), None]
+
+
+def test_plan_keeps_every_point_below_85_percent_of_compliance_and_within_the_limits():
+    pts = st.plan(10000, 500, 10000, 100, 8000, 10_000_000, 100000)
+    assert pts and all(i * 10 <= 85000 for i, _ in pts)
+    with pytest.raises(st.SelfTestError, match="smaller load"):
+        st.plan(100000, 500, 10000, 100, 8000, 10_000_000, 100000)
+
+
+def run(*args, env=None):
+    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=180, cwd=ROOT, env=env)
+
+
+def test_selftest_on_sim_finds_the_boards_errors_stores_them_and_the_reset_board_applies_them(tmp_path):
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    p = run("selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "6", env=env)
+    assert p.returncode == 0, p.stderr
+    stored = board_sim.parse_correction((tmp_path / "vmon_cal.txt").read_text(), 2)
+    for ch in (0, 1):
+        g_true = board_sim.MON_GAIN[ch] * board_sim.DAC_GAIN[ch]
+        assert abs(stored[ch][0] / 1e6 - g_true) < 0.003, (ch, stored[ch], g_true)
+        # the offset the firmware sees: the monitor's, plus the peak search's noise bias (a few counts, > 0)
+        assert 0 < stored[ch][1] - board_sim.MON_OFFSET_MV[ch] < 6 * 27 * board_sim.ADC_NOISE_COUNTS / 2.84
+    out = p.stdout
+    before = float(out.split("(was ")[1].split("%")[0])
+    after = float(out.split("with the stored correction: worst Rp error ")[1].split("%")[0])
+    assert after < before
+    # measuring again with the correction stored: the self-test measures the raw board, same answer
+    p2 = run("selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "6", "--no-store", env=env)
+    assert p2.returncode == 0, p2.stderr
+    row0 = next(ln for ln in p2.stdout.splitlines() if ln.strip().startswith("0 |"))
+    g0 = float(row0.split("|")[2])  # ch0's path gain again (1.009), not the 1.000 of a corrected board
+    assert abs(g0 - board_sim.MON_GAIN[0] * board_sim.DAC_GAIN[0]) < 0.003
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--load-ohm", "50"], "--load-ohm 50 out of range"),
+    (["--load-ohm", "10000", "--pulses", "1"], "--pulses 1 out of range"),
+    (["--load-ohm", "10000", "--channel", "7"], "--channel 7 out of range"),
+])
+def test_selftest_user_mistakes_are_one_line_and_store_nothing(tmp_path, args, words):
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    p = run("selftest", *args, "--device", "sim://steady", env=env)
+    assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert not (tmp_path / "vmon_cal.txt").exists()
+
+
+@pytest.mark.parametrize("url, words", [
+    ("sim://steady?board=perfect", "board is real (the parts' errors, default) or ideal"),
+    ("sim://steady?load=ten", "load takes a whole number of ohms"),
+    ("sim://steady?load=5", "load=5 ohm out of range [100, 1000000]"),
+])
+def test_bad_board_or_load_in_a_sim_url_is_one_line(url, words):
+    p = run("info", "--device", url)
+    assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_the_ideal_switch_reaches_the_board(tmp_path):
+    """sim://...?board=ideal and `steadytouch sim --ideal-board`: the commanded current
+    exactly, no gain/offset error (a 10 kohm load reads 10 kohm within the noise)."""
+    from steadytouch.device import Device
+    from steadytouch.protocol import Telemetry
+    from steadytouch.transport import open_transport
+
+    rps = {}
+    for board in ("ideal", "real"):
+        with open_transport(f"sim://steady?load=10000&board={board}&auto=1000,1000,-1670,186000") as t:
+            d = Device(t)
+            got = []
+            while len(got) < 20:
+                r = d.read(5)
+                if isinstance(r, Telemetry) and r.channel == 0 and r.i_ua:
+                    got.append(r.rp_ohm)
+            rps[board] = sorted(got)[10]
+    assert abs(rps["ideal"] - 10000) < 100  # the peak search's noise bias only (~2 counts at 1 mA)
+    assert rps["real"] - 10000 > 150  # ch0: path gain 1.009 and +160 mV offset
+    p = run("sim", "steady", "--mode", "open", "--ideal-board", "--no-plot", "--out", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert "board=ideal" in (tmp_path / "steady-open.csv").read_text()[:2000]
+
+
+def test_skin_with_repeated_sweeps_reports_its_uncertainty_and_sends_no_model_it_cannot_trust(tmp_path):
+    """`steadytouch skin` on a CSV with a sweep column: averaged fit, its uncertainty; an
+    untrusted model is not sent (the device's is removed: MODE_FAST runs model-free)."""
+    import numpy as np
+
+    from sim_electrode import Electrode
+    from steadytouch import skin
+
+    e = Electrode()
+    rng = np.random.default_rng(3)
+    for noise, trusted in ((0.002, True), (0.05, False)):
+        f = tmp_path / f"sweeps-{noise}.csv"
+        f.write_text("sweep,i_ua,t_us,rp_ohm\n" + "".join(
+            f"{k},{i},{t},{round(e.rp_kohm(i, t) * 1000 * (1 + noise * rng.normal()))}\n"
+            for k in range(6) for i, t in skin.sweep_wide(1000, 1000)))
+        p = run("skin", str(f), "--send", "--device", "sim://steady")
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "6 sweeps averaged" in p.stdout and "Rp shape known to" in p.stdout
+        assert ("not trusted" in p.stdout) is (not trusted)
+        assert "sim://steady: skin: ok" in p.stdout
+
+
+def test_host_and_firmware_agree_on_the_correction_file():
+    import vmon_cal
+
+    assert (st.CAL_FILE, st.CAL_HEADER, st.GAIN_PPM_RANGE, st.OFFSET_MV_RANGE) == (
+        vmon_cal.CAL_FILE, vmon_cal.CAL_HEADER, vmon_cal.CAL_GAIN_PPM, vmon_cal.CAL_OFFSET_MV)
