@@ -52,7 +52,10 @@ SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/core_step
 
 RUN = """
 s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, {rate})
-reps = [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
+reps = []
+if {t0} > s.lim[3]:  # the boot default keeps room for a skin model; without one t_max may go higher
+    reps.append(hp.cmd_set_limits(bytearray(64), s.lim[0], s.lim[1], s.lim[2], {t0}, s.lim[4]))
+reps += [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
 if {skin}:
     reps.append(hp.cmd_set_skin(bytearray(64), hp.CH_ALL, {skin_args}))
 reps.append(hp.cmd_arm(bytearray(64), hp.CH_ALL))
@@ -91,10 +94,10 @@ b.stop_all()
 """
 
 
-def t_max(n, rate, cfg):
+def t_max(n, rate, cfg, model=0):
     import hid_protocol as hp
 
-    return min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))
+    return min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n, model))
 
 
 def bench(host, cfg, configs, modes, widths, frames, warm=3):
@@ -104,9 +107,13 @@ def bench(host, cfg, configs, modes, widths, frames, warm=3):
         make_board(chip, cfg, n_channels=n)
         for name in modes:
             for w in widths:
-                t0 = t_max(n, rate, cfg) if w == "tmax" else w
-                if t0 > t_max(n, rate, cfg) or (w == "tmax" and t0 in widths):
-                    continue  # the device refuses it (hid_protocol.frame_fits), or measured already
+                m = name == "fast+skin"  # a skin model: the frame rule counts its work
+                t0 = t_max(n, rate, cfg, m) if w == "tmax" else w
+                if t0 > t_max(n, rate, cfg, m) or t0 < 20 or (w == "tmax" and t0 in widths):
+                    if t0 < 20 or t0 > t_max(n, rate, cfg, m):
+                        print(f"  {n} ch @ {rate} Hz {name:9} T0 {w} us: refused by the device (hid_protocol."
+                              f"frame_fits{' with a skin model' if m else ''}), not run")
+                    continue  # the device refuses it, or measured already
                 for k in range(n):
                     chip.host.call("load", ch=k, load=JUMP if name == "fast+skin" else LOAD)
                 w0 = time.time()

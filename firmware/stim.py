@@ -144,7 +144,11 @@ class Stimulator:
         rate = rate_hz or cfg.RATE_HZ
         if not hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ:
             raise ValueError("rate_hz=%d out of range [%d, %d]" % (rate, hp.RATE_MIN_HZ, hp.RATE_MAX_HZ))
-        t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))  # the worst-case frame fits its period
+        # the worst-case frame fits its period; with room for a skin model's work where that
+        # leaves a pulse (SET_SKIN then needs no lower t_max first; SET_LIMITS can raise it)
+        t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n, 1))
+        if t_max < hp.T_FLOOR_US:
+            t_max = min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n))
         if t_max < hp.T_FLOOR_US:
             raise ValueError("%d channels at %d Hz cannot fit a frame: at most %d Hz (hid_protocol.frame_fits)"
                              % (n, rate, hp.rate_max_fitting(n, hp.T_FLOOR_US)))
@@ -600,7 +604,8 @@ class Stimulator:
             rate = r[hp.O_ARG + 1]
             if not sc.MODE_OPEN_LOOP <= mode <= sc.MODE_FAST:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ and hp.frame_fits(rate, self.n, self.lim[3])):
+            if rate and not (hp.RATE_MIN_HZ <= rate <= hp.RATE_MAX_HZ
+                             and hp.frame_fits(rate, self.n, self.lim[3], self._has_model())):
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 1)  # or the frame would not fit
             self.mode = mode
             k = 0
@@ -617,6 +622,16 @@ class Stimulator:
         if cmd == hp.CMD_SET_SKIN:
             return self._set_skin(r, lo, hi)
         return self._ack(r, hp.RES_UNKNOWN_COMMAND, hp.O_OUT_CMD)
+
+    def _has_model(self):
+        """1 if some channel has a skin model (its frame work is longer: hid_protocol.frame_us)."""
+        k = 0
+        while k < self.n:
+            ctl = self.chans[k].ctl
+            if ctl.skin_rs_ohm or ctl.skin_beta_q16 or ctl.skin_cp_pf:
+                return 1
+            k += 1
+        return 0
 
     def _set_skin(self, r, lo, hi):
         # MODE_FAST's skin model for channels lo..hi-1; only while they are disarmed;
@@ -636,6 +651,8 @@ class Stimulator:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
             if not sc.SKIN_CP_MIN_PF <= cp <= sc.SKIN_CP_MAX_PF:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
+            if not hp.frame_fits(self.rate_hz, self.n, self.lim[3], 1):  # the model's work must fit the frame
+                return self._ack(r, hp.RES_NO_FRAME_TIME, 0)
         k = lo
         while k < hi:
             self.chans[k].ctl.set_skin(rs, beta, cp)
@@ -689,7 +706,7 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
-        if not (1 <= t_max <= self.hard_t and hp.frame_fits(self.rate_hz, self.n, t_max)):
+        if not (1 <= t_max <= self.hard_t and hp.frame_fits(self.rate_hz, self.n, t_max, self._has_model())):
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)

@@ -22,6 +22,8 @@ RESULT_WORDS = {
     hp.RES_BAD_STATE: "not allowed while armed",
     hp.RES_NOT_CALIBRATED: "not calibrated (send calibrate first)",
     hp.RES_BAD_FORMAT: "malformed report",
+    hp.RES_NO_FRAME_TIME: "no room in the frame for a skin model's work at this rate and t_max "
+                          "(lower the rate or t_max first)",
 }
 STOP_WORDS = {
     hp.STOP_NONE: "stimulating",
@@ -379,6 +381,9 @@ class Commands:
         # a rate or t_max whose worst-case frame cannot fit is then refused here, as the
         # device refuses it (hid_protocol.frame_fits); unknown: the device's answer says
         self.frame = frame
+        # a skin model this host set (SET_SKIN acknowledged, not removed on every channel since):
+        # the frame rule then counts the model's work (the device checks its own state)
+        self.model = 0
 
     def know(self, info: "Info") -> None:
         """What a GET_INFO answer says of the frame: channels, rate and soft t_max."""
@@ -393,20 +398,31 @@ class Commands:
             rate = report[hp.O_ARG + 1]
         elif report[0] == hp.CMD_SET_LIMITS:
             t_max = hp.get_u16(report, hp.O_ARG + 6)
+        elif report[0] == hp.CMD_SET_SKIN:
+            if any(report[hp.O_ARG:hp.O_ARG + 10]):
+                self.model = 1
+            elif report[hp.O_OUT_CH] == hp.CH_ALL:
+                self.model = 0
         self.frame = (n, rate, t_max)
 
-    def _fits(self, rate_hz: int, t_max_us: int, what: str) -> None:
+    def _fits(self, rate_hz: int, t_max_us: int, what: str, model: int | None = None) -> None:
         n = self.frame[0]
-        if hp.frame_fits(rate_hz, n, t_max_us):
+        m = self.model if model is None else model
+        if hp.frame_fits(rate_hz, n, t_max_us, m):
             return
         rule = "rate x hid_protocol.frame_us(channels, t_max) must stay within 1 s, as the device checks"
+        with_model = " with a skin model set" if m else ""
+        if what == "skin":
+            raise CommandError(f"a skin model's work does not fit the frame with {n} channels at {rate_hz} Hz and "
+                               f"t_max_us={t_max_us}: lower t_max_us to {hp.t_max_fitting(rate_hz, n, 1)} or the "
+                               f"rate to {hp.rate_max_fitting(n, t_max_us, 1)} Hz first ({rule})")
         if what == "rate":
-            lower = hp.t_max_fitting(rate_hz, n)
+            lower = hp.t_max_fitting(rate_hz, n, m)
             how = f", or lower t_max_us to {lower} first" if lower >= hp.T_FLOOR_US else ""
-            raise CommandError(f"rate_hz={rate_hz} does not fit the frame with {n} channels and t_max_us={t_max_us}: "
-                               f"at most {hp.rate_max_fitting(n, t_max_us)} Hz{how} ({rule})")
-        raise CommandError(f"t_max_us={t_max_us} does not fit the frame with {n} channels at {rate_hz} Hz: at most "
-                           f"{hp.t_max_fitting(rate_hz, n)} us ({rule})")
+            raise CommandError(f"rate_hz={rate_hz} does not fit the frame with {n} channels and t_max_us={t_max_us}"
+                               f"{with_model}: at most {hp.rate_max_fitting(n, t_max_us, m)} Hz{how} ({rule})")
+        raise CommandError(f"t_max_us={t_max_us} does not fit the frame with {n} channels at {rate_hz} Hz{with_model}: "
+                           f"at most {hp.t_max_fitting(rate_hz, n, m)} us ({rule})")
 
     def _next(self) -> int:
         self.tag = (self.tag + 1) & 0xFF
@@ -442,6 +458,8 @@ class Commands:
         v = (rs_ohm, beta_q16, cp_pf)
         if self.check:
             v = check_skin(*v)
+            if any(v) and self.frame is not None:
+                self._fits(self.frame[1], self.frame[2], "skin", 1)
         return bytes(hp.cmd_set_skin(bytearray(64), ch, *v, self._next()))
 
     def set_mode(self, mode, rate_hz=0) -> bytes:

@@ -75,41 +75,50 @@ RATE_MAX_HZ = const(100)
 # work (FRAME_TAIL_US). Host commands come after that: the first waiting one is
 # always served, another only while FRAME_CMD_US remain before the next
 # deadline (a frame with a command can overrun by one command, counted).
-# Figures: the worst measured on the
-# emulated RP2040 in MODE_FAST without a skin model, with a margin
-# (docs/performance.md, "The frame on the emulated RP2040"). A SET_MODE rate or
-# SET_LIMITS t_max that breaks the rule is refused (RES_OUT_OF_RANGE); at boot
-# the default soft t_max is lowered to the largest that fits.
+# Figures: the worst measured on the emulated RP2040 in MODE_FAST, with a
+# margin; with a skin model on any channel (SET_SKIN) a channel's work and the
+# tail are longer (the model's root searches, bounded by FAST_MODEL_WORK_MAX):
+# FRAME_WORK_MODEL_US, FRAME_TAIL_MODEL_US (docs/performance.md, "The frame on
+# the emulated RP2040"). A SET_MODE rate or SET_LIMITS t_max that breaks the
+# rule is refused (RES_OUT_OF_RANGE), a SET_SKIN whose model's work would not
+# fit with RES_NO_FRAME_TIME; at boot the default soft t_max is lowered to the
+# largest that fits (no model then).
 FRAME_GAP_US = const(300)
 FRAME_WORK_US = const(1800)
 FRAME_TAIL_US = const(2200)
+FRAME_WORK_MODEL_US = const(3000)
+FRAME_TAIL_MODEL_US = const(3000)
 FRAME_CMD_US = const(1500)
 
 
-def frame_us(n_channels, t_max_us):
-    """The longest frame of n_channels pulses of at most t_max_us (us)."""
-    w = t_max_us if t_max_us > FRAME_WORK_US else FRAME_WORK_US
-    return n_channels * FRAME_GAP_US + t_max_us + (n_channels - 1) * w + FRAME_TAIL_US
+def frame_us(n_channels, t_max_us, model=0):
+    """The longest frame of n_channels pulses of at most t_max_us (us); model:
+    a skin model is set on some channel."""
+    work = FRAME_WORK_MODEL_US if model else FRAME_WORK_US
+    w = t_max_us if t_max_us > work else work
+    tail = FRAME_TAIL_MODEL_US if model else FRAME_TAIL_US
+    return n_channels * FRAME_GAP_US + t_max_us + (n_channels - 1) * w + tail
 
 
-def frame_fits(rate_hz, n_channels, t_max_us):
+def frame_fits(rate_hz, n_channels, t_max_us, model=0):
     """True if the longest frame of n_channels pulses of t_max_us fits the period at rate_hz."""
-    return rate_hz * frame_us(n_channels, t_max_us) <= 1000000
+    return rate_hz * frame_us(n_channels, t_max_us, model) <= 1000000
 
 
-def t_max_fitting(rate_hz, n_channels):
+def t_max_fitting(rate_hz, n_channels, model=0):
     """Longest t_max (us) that frame_fits() accepts at rate_hz with n_channels;
     below T_FLOOR_US (possibly negative) if no pulse fits."""
-    room = 1000000 // rate_hz - n_channels * FRAME_GAP_US - FRAME_TAIL_US
+    work = FRAME_WORK_MODEL_US if model else FRAME_WORK_US
+    room = 1000000 // rate_hz - n_channels * FRAME_GAP_US - (FRAME_TAIL_MODEL_US if model else FRAME_TAIL_US)
     t = room // n_channels
-    if n_channels > 1 and t < FRAME_WORK_US:  # every pulse stretched to the work it hides
-        t = room - (n_channels - 1) * FRAME_WORK_US
+    if n_channels > 1 and t < work:  # every pulse stretched to the work it hides
+        t = room - (n_channels - 1) * work
     return t
 
 
-def rate_max_fitting(n_channels, t_max_us):
+def rate_max_fitting(n_channels, t_max_us, model=0):
     """Highest rate (Hz) that frame_fits() accepts for n_channels pulses of t_max_us."""
-    return 1000000 // frame_us(n_channels, t_max_us)
+    return 1000000 // frame_us(n_channels, t_max_us, model)
 
 
 # ---- result codes (ACK byte 2) ----
@@ -121,6 +130,7 @@ RES_OUT_OF_RANGE = const(4)
 RES_BAD_STATE = const(5)  # e.g. calibrate or set limits while armed
 RES_NOT_CALIBRATED = const(6)  # arm before calibrate
 RES_BAD_FORMAT = const(7)  # reserved bytes not zero
+RES_NO_FRAME_TIME = const(8)  # SET_SKIN: the model's work would not fit the frame (rate, t_max)
 
 # ---- stop reasons (telemetry byte 3; 0 = stimulating) ----
 STOP_NONE = const(0)

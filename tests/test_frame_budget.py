@@ -20,14 +20,16 @@ def test_rule_numbers():
 
 
 def test_t_max_fitting_is_the_largest_that_fits():
-    for n in (1, 2, 3, 4):
-        for rate in range(hp.RATE_MIN_HZ, hp.RATE_MAX_HZ + 1):
-            t = hp.t_max_fitting(rate, n)
-            if t >= hp.T_FLOOR_US:
-                assert hp.frame_fits(rate, n, t) and not hp.frame_fits(rate, n, t + 1), (n, rate, t)
-                assert rate <= hp.rate_max_fitting(n, t) and not hp.frame_fits(hp.rate_max_fitting(n, t) + 1, n, t)
-            else:
-                assert not hp.frame_fits(rate, n, hp.T_FLOOR_US), (n, rate)
+    for m in (0, 1):
+        for n in (1, 2, 3, 4):
+            for rate in range(hp.RATE_MIN_HZ, hp.RATE_MAX_HZ + 1):
+                t = hp.t_max_fitting(rate, n, m)
+                if t >= hp.T_FLOOR_US:
+                    assert hp.frame_fits(rate, n, t, m) and not hp.frame_fits(rate, n, t + 1, m), (n, rate, t)
+                    r = hp.rate_max_fitting(n, t, m)
+                    assert rate <= r and not hp.frame_fits(r + 1, n, t, m)
+                else:
+                    assert not hp.frame_fits(rate, n, hp.T_FLOOR_US, m), (n, rate)
 
 
 def test_device_refuses_a_frame_that_cannot_fit():
@@ -54,8 +56,62 @@ def test_device_refuses_a_frame_that_cannot_fit():
     assert r["lim4001"] == hp.RES_OK  # at 50 Hz it fits
     assert r["lim3600"] == hp.RES_OK and r["rate100b"] == hp.RES_OK
     assert r["lim3601"] == hp.RES_OUT_OF_RANGE and r["detail3601"] == hp.O_ARG + 6  # at 100 Hz it does not
-    assert r["boot4_t_max"] == 4150  # 4 channels at 50 Hz: the default t_max lowered to fit
-    assert r["boot4_100_t_max"] == 1200
+    # 4 channels at 50 Hz: the default t_max lowered to fit, with room for a skin model's work
+    assert r["boot4_t_max"] == 3950 == hp.t_max_fitting(50, 4, 1)
+    assert r["boot4_100_t_max"] == 1200  # no model fits 4 channels at 100 Hz: the rule without one
+
+
+def test_rule_with_a_skin_model():
+    # a channel's work and the tail are longer with a model: FRAME_WORK_MODEL_US, FRAME_TAIL_MODEL_US
+    assert hp.frame_us(2, 3200, 1) == 2 * 300 + 2 * 3200 + 3000
+    assert hp.frame_us(4, 200, 1) == 4 * 300 + 200 + 3 * 3000 + 3000
+    assert hp.t_max_fitting(100, 2, 1) == 3200 and hp.t_max_fitting(50, 4, 1) == 3950
+    assert hp.t_max_fitting(100, 4, 1) < hp.T_FLOOR_US  # no skin model at 4 channels x 100 Hz
+    for n in (1, 2, 3, 4):
+        for rate in (10, 50, 77, 100):
+            assert hp.t_max_fitting(rate, n, 1) <= hp.t_max_fitting(rate, n)
+
+
+def test_device_refuses_a_skin_model_whose_work_cannot_fit():
+    """SET_SKIN is refused (RES_NO_FRAME_TIME, nothing changed) where the model's
+    work would not fit the frame; with a model set, SET_LIMITS and SET_MODE count it."""
+    _, res, _ = run_fw("""
+        b = bytearray(64)
+        r = {}
+        s, board, usb, clock = make("steady", n=4, rate=100)
+        r["skin4_100"] = apply(s, hp.cmd_set_skin(b, hp.CH_ALL, 500, 36045, 14000))
+        r["detail"] = s.tx[hp.O_DETAIL]
+        r["model_after"] = [c.ctl.skin_rs_ohm for c in s.chans]
+        s, board, usb, clock = make("steady", n=4)
+        r["skin4_50"] = apply(s, hp.cmd_set_skin(b, 1, 500, 36045, 14000))
+        r["lim4150_model"] = apply(s, hp.cmd_set_limits(b, 500, 10000, 100, 4150, 10000000))
+        r["lim3950_model"] = apply(s, hp.cmd_set_limits(b, 500, 10000, 100, 3950, 10000000))
+        r["unskin"] = apply(s, hp.cmd_set_skin(b, hp.CH_ALL, 0, 0, 0))
+        r["lim4150"] = apply(s, hp.cmd_set_limits(b, 500, 10000, 100, 4150, 10000000))
+        r["skin_at_4150"] = apply(s, hp.cmd_set_skin(b, 0, 500, 36045, 14000))
+        result(**r)
+    """)
+    r = res[0]
+    assert r["skin4_100"] == hp.RES_NO_FRAME_TIME and r["model_after"] == [0, 0, 0, 0]
+    assert r["skin4_50"] == hp.RES_OK
+    assert r["lim4150_model"] == hp.RES_OUT_OF_RANGE and r["lim3950_model"] == hp.RES_OK
+    assert r["unskin"] == hp.RES_OK and r["lim4150"] == hp.RES_OK
+    assert r["skin_at_4150"] == hp.RES_NO_FRAME_TIME
+
+
+def test_host_refuses_a_skin_model_whose_work_cannot_fit():
+    import pytest
+
+    from steadytouch.protocol import CommandError, Commands
+
+    with pytest.raises(CommandError, match=r"skin model's work does not fit the frame with 4 channels at 100 Hz"):
+        Commands(frame=(4, 100, 1200)).set_skin(500, 36045, 14000)
+    c = Commands(frame=(4, 50, 3950))
+    c.applied(c.set_skin(500, 36045, 14000, 1))
+    with pytest.raises(CommandError, match=r"t_max_us=4150 does not fit .* with a skin model set: at most 3950 us"):
+        c.set_limits(500, 10000, 100, 4150, 10000000)
+    c.applied(c.set_skin(0, 0, 0))  # removed on every channel
+    c.set_limits(500, 10000, 100, 4150, 10000000)
 
 
 def test_host_refuses_a_rate_or_t_max_whose_frame_cannot_fit():
