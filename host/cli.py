@@ -4,6 +4,7 @@ command a stimulator. User mistakes end in one line on stderr, never a traceback
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import signal
@@ -368,7 +369,7 @@ def cmd_record(a) -> int:
         prog = Progress("record", a.seconds)
         lost_device = None
         try:
-            with d.live(arm=hp.CH_ALL if a.arm else None):
+            with d.live(arm=hp.CH_ALL if a.arm else None), _lab_samples(link):
                 while t_end is None or time.monotonic() < t_end:
                     try:
                         rep = d.read(0.5)
@@ -422,10 +423,25 @@ def _lab_start(link, meta: dict, d: Device, wait_s: float = 0.0) -> None:
         if d.t.realtime:
             d.keep_alive()
         end = time.monotonic() + wait_s
-        while not link.streams.consumers() and time.monotonic() < end:
-            d.read(0.05)
+        feed, link.tap.feed = link.tap.feed, None  # the LSL stream starts with the recording, not before
+        try:
+            while not link.streams.consumers() and time.monotonic() < end:
+                d.read(0.05)
+        finally:
+            link.tap.feed = feed
         if not link.streams.consumers():
             say("LSL: no recorder connected; going on")
+
+
+@contextlib.contextmanager
+def _lab_samples(link):
+    """Pulses go on the LSL stream while the recording loop runs (the CSV's rows); the markers
+    of what follows (the closing DISARM) still go out."""
+    try:
+        yield
+    finally:
+        if link is not None and link.feed is not None:
+            link.feed.samples = False
 
 
 def _lab_finish(link) -> None:

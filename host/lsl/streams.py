@@ -174,7 +174,8 @@ class Feed:
         self.s = streams
         self.clock = clock
         self.stop: dict[int, int] = {}
-        self.pending: dict[int, str] = {}  # tag -> marker text of a command sent, until its ack
+        self.pending: dict[int, list] = {}  # tag -> [(command, marker text)] of commands sent, until their ack
+        self.samples = True  # False: markers only (a recording that has ended)
 
     def sent(self, report: bytes) -> None:
         words = command_words(report)
@@ -184,7 +185,8 @@ class Feed:
     def report(self, rep, arrival_s: float) -> None:
         ts = self.clock.to_lsl(self.clock.add(rep.time_us, arrival_s))
         if isinstance(rep, Telemetry):
-            self.s.telemetry([getattr(rep, c) for c in COLUMNS], ts)
+            if self.samples:
+                self.s.telemetry([getattr(rep, c) for c in COLUMNS], ts)
             if rep.flags & hp.FLAG_CALIBRATING and rep.rp_ohm > 0:
                 self.s.marker(f"rp0 ch={rep.channel} rp0_ohm={rep.rp_ohm}", ts)
             if rep.stop != self.stop.get(rep.channel) and rep.stop in STOP_REASONS:
@@ -255,7 +257,7 @@ def device_serial(transport, url: str) -> str:
         return s
     if url.startswith("hid://") and url.count("/") >= 3:
         return url.rsplit("/", 1)[1]
-    return url.split("?")[0]
+    return url  # a simulated or emulated board: its URL names it
 
 
 def open_streams(meta: dict, n_channels: int, realtime: bool = True):
