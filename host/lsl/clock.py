@@ -10,9 +10,10 @@ mapping is fitted to the *lower envelope* of (arrival - device time):
    report older than the previous one, not a wrap);
 2. in each bin of BIN_S device seconds keep the report with the smallest
    arrival - device time (the least delayed one: the jitter only ever adds);
-3. fit offset + drift * device_s through the bin minima of the last WINDOW_S
-   seconds by least squares (numpy.polyfit); before two bins span MIN_SPAN_S
-   the drift is taken as 0 and the offset is the smallest residual so far.
+3. fit offset + drift * device_s through the minima of the closed bins of the
+   last WINDOW_S seconds by least squares (numpy.polyfit); until three closed
+   bins span MIN_SPAN_S the drift is taken as 0 and the offset is the smallest
+   residual so far.
 
 A sample's LSL timestamp = device_s + offset + drift * device_s. It is never the
 arrival time: jitter that delays some reports moves the minimum of a bin only if
@@ -78,10 +79,10 @@ class ClockMap:
         return dev_s
 
     def _fit(self) -> None:
-        pts = list(self.bins) + [self.cur_min]
+        pts = list(self.bins)  # closed bins only: an open bin's minimum may still be a late report
         if len(pts) < 3 or pts[-1][0] - pts[0][0] < self.MIN_SPAN_S:
             self.drift = 0.0
-            self.offset_s = min(p[1] for p in pts)
+            self.offset_s = min(p[1] for p in pts + [self.cur_min])
             self.residual_s = 0.0
             return
         import numpy as np
