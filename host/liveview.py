@@ -196,8 +196,8 @@ class LivePlot:
                 y = np.concatenate(ys)
                 y0, y1 = float(y.min()), float(y.max())
                 lo_, hi_ = a.get_ylim()
-                if y0 < lo_ or y1 > hi_ or (y1 - y0) < (hi_ - lo_) / 3:
-                    pad = (y1 - y0) * 0.15 or abs(y1) * 0.05 or 1.0
+                pad = max((y1 - y0) * 0.15, abs(y1) * 0.01, 1e-9)
+                if y0 < lo_ or y1 > hi_ or (hi_ - lo_) > 3 * (y1 - y0 + 2 * pad):
                     a.set_ylim(y0 - pad, y1 + pad)
                     self.background = None  # new ticks: a full redraw
 
