@@ -84,12 +84,14 @@ class LivePlot:
             import matplotlib.pyplot as plt
 
             self.plt = plt
-            plt.ion()
+            # not plt.ion(): interactive mode redraws the whole stale figure after every change
             self.fig = plt.figure(figsize=FIG_IN, dpi=DPI)
             try:
                 self.fig.canvas.manager.set_window_title("steadytouch monitor")
             except AttributeError:
                 pass
+            self._catch_tk_interrupts()
+            plt.show(block=False)
         self.fig.subplots_adjust(left=LEFT, right=RIGHT, top=TOP, bottom=BOTTOM, hspace=HSPACE)
         self.ax = self.fig.subplots(len(PANELS), 1, sharex=True)
         for a, lab in zip(self.ax, PANELS):
@@ -121,6 +123,25 @@ class LivePlot:
         self.background = None
         self.full_draws = 0
         self.fig.canvas.mpl_connect("draw_event", self._on_draw)
+
+    def _catch_tk_interrupts(self) -> None:
+        """Ctrl-C / SIGTERM (cli.Terminated) that lands in one of Tk's own callbacks (a redraw on
+        expose) is caught and printed by Tk, and the monitor would run on: keep it and raise it
+        from draw() instead, so the monitor stops (and disarms) as it should."""
+        self._pending_interrupt = None
+        try:
+            root = self.fig.canvas.get_tk_widget()._root()
+        except AttributeError:  # not a Tk backend
+            return
+        report = root.report_callback_exception
+
+        def report_or_keep(exc, val, tb):
+            if issubclass(exc, KeyboardInterrupt):
+                self._pending_interrupt = val
+            else:
+                report(exc, val, tb)
+
+        root.report_callback_exception = report_or_keep
 
     def set_meta(self, meta: dict) -> None:
         """The device's soft limits as grey lines on I and T; its name in the title."""
@@ -237,6 +258,9 @@ class LivePlot:
         c.blit(self.fig.bbox)
         if self.plt is not None:
             c.flush_events()
+            if getattr(self, "_pending_interrupt", None) is not None:
+                e, self._pending_interrupt = self._pending_interrupt, None
+                raise e
         self.draws += 1
         return True
 
