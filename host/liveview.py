@@ -123,6 +123,10 @@ class LivePlot:
         self.background = None
         self.full_draws = 0
         self.fig.canvas.mpl_connect("draw_event", self._on_draw)
+        if self.plt is not None:
+            # the window's first draw takes about a second (fonts, mapping the window): do it now,
+            # before any device is opened, so it cannot starve the keep-alive of an armed device
+            self.draw()
 
     def _catch_tk_interrupts(self) -> None:
         """Ctrl-C / SIGTERM (cli.Terminated) that lands in one of Tk's own callbacks (a redraw on
@@ -147,6 +151,7 @@ class LivePlot:
         """The device's soft limits as grey lines on I and T; its name in the title."""
         self.title.set_text(f"steadytouch monitor: {meta.get('device', '')}  mode {meta.get('mode', '?')}  "
                             f"firmware {meta.get('firmware', '?')}")
+        self.background = None  # the title and limit lines are in the background
         for key, ax, scale in (("i_min_ua", 1, 1e3), ("i_max_ua", 1, 1e3), ("t_min_us", 2, 1), ("t_max_us", 2, 1)):
             if key in meta:
                 self.ax[ax].axhline(float(meta[key]) / scale, color="0.6", lw=0.8, ls=":")
@@ -183,7 +188,7 @@ class LivePlot:
         for ch, ring in sorted(self.data.items()):
             if ch not in self.lines:
                 self._new_channel(ch)
-            a = ring.since(lo)
+            a = ring.since(lo)  # (may be empty: a channel that stopped pulsing a window ago)
             x = a[:, 0] - self.now_s
             ln = self.lines[ch]
             for k in range(5):
@@ -204,15 +209,25 @@ class LivePlot:
             lc.set_segments(segs)
         for tx in self.mark_text:
             tx.remove()
-        self.mark_text = [self.ax[0].text(s - self.now_s, 1.02, f"ch{ch} {w}", transform=self.ax[0].get_xaxis_transform(),
-                                          fontsize=6, rotation=0, ha="right", va="bottom", animated=True)
-                          for s, ch, w in self.stops if s >= lo][-4:]
+        groups: list[list] = []  # stops of the same kind within 0.1 s share one label: "ch0,1 ELECTRODE OFF"
+        for s, ch, w in self.stops:
+            if s < lo:
+                continue
+            if groups and groups[-1][2] == w and s - groups[-1][0] < 0.1:
+                groups[-1][1].append(ch)
+            else:
+                groups.append([s, [ch], w])
+        self.mark_text = [self.ax[0].text(s - self.now_s, 1.02, f"ch{','.join(map(str, sorted(chs)))} {w}",
+                                          transform=self.ax[0].get_xaxis_transform(), fontsize=6, ha="right",
+                                          va="bottom", animated=True)
+                          for s, chs, w in groups[-4:]]
         for k, a in enumerate(self.ax):
             ys = [ln.get_ydata() for ln in (self.lines[c][k] for c in self.lines) if len(ln.get_ydata())]
             if k == 3:
                 ys += [self.lines[c][5].get_ydata() for c in self.lines if len(self.lines[c][5].get_ydata())]
             if k == 4:
                 ys += [np.asarray(b.get_paths()[0].vertices[:, 1]) for b in self.bands.values() if b.get_paths()]
+            ys = [y for y in ys if len(y)]
             if ys:
                 y = np.concatenate(ys)
                 y0, y1 = float(y.min()), float(y.max())
