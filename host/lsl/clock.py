@@ -60,6 +60,8 @@ class ClockMap:
         self.drift = 0.0  # seconds of LSL clock per device second, minus 1
         self.residual_s = 0.0
         self.n = 0
+        self.late_sum_s = 0.0  # arrival after the mapped time, summed (what the mapping kept out)
+        self.late_max_s = 0.0
 
     def add(self, time_us: int, arrival_s: float) -> float:
         """Note one report (its device time and the LSL clock when it was read);
@@ -76,6 +78,9 @@ class ClockMap:
         elif r < self.cur_min[1]:
             self.cur_min = (dev_s, r)
             self._fit()
+        late = r - (self.offset_s + self.drift * dev_s)  # how much later than the line it arrived
+        self.late_sum_s += late
+        self.late_max_s = max(self.late_max_s, late)
         return dev_s
 
     def _fit(self) -> None:
@@ -100,8 +105,10 @@ class ClockMap:
         return dev_s + self.offset_s + self.drift * dev_s
 
     def words(self) -> str:
+        late = self.late_sum_s / self.n * 1e6 if self.n else 0.0
         return (f"offset_s={self.offset_s:.6f} drift_ppm={self.drift * 1e6:.2f} "
-                f"residual_us={self.residual_s * 1e6:.1f} reports={self.n}")
+                f"residual_us={self.residual_s * 1e6:.1f} reports={self.n} "
+                f"arrival_late_us_mean={late:.0f} arrival_late_us_max={self.late_max_s * 1e6:.0f}")
 
 
 class VirtualClock:
