@@ -101,9 +101,11 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
     for m in modes:
         t0 = time.perf_counter()
         say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
-        def show(t_s, m=m):
+        def show(t_s, m=m, t0=t0):
             if sys.stderr.isatty():
-                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated", end="", file=sys.stderr, flush=True)
+                el = time.perf_counter() - t0
+                left = f", about {el * (duration - t_s) / t_s:.0f} s left" if t_s > 0 else ""
+                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated{left}   ", end="", file=sys.stderr, flush=True)
 
         reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show)
         if sys.stderr.isatty():
@@ -196,6 +198,9 @@ def cmd_arm(a) -> int:
     ch = _channel(a)
     _precheck("arm", ch)
     _finite("seconds", a.seconds, 0, 1e9)
+    from .progress import Progress
+
+    prog = Progress("arm", a.seconds)
     with open_transport(a.device) as t:
         d = Device(t)
         n = d.info().n_channels
@@ -209,10 +214,14 @@ def cmd_arm(a) -> int:
                 say(f"{a.device}: arm: ok; stimulating while this runs (Ctrl-C disarms; {why})")
                 while (t_end is None or time.monotonic() < t_end) and not chans <= set(stopped):
                     rep = d.read(0.25)
-                    if isinstance(rep, Telemetry) and rep.channel in chans and not rep.armed:
-                        stopped[rep.channel] = rep.stop
+                    if isinstance(rep, Telemetry) and rep.channel in chans:
+                        prog.add(rep)
+                        if not rep.armed:
+                            stopped[rep.channel] = rep.stop
+                    prog.tick(f"{d.lost} reports lost")
         except KeyboardInterrupt:
             pass
+        say(prog.summary(f"{d.lost} reports lost"))
         for c, why in sorted(stopped.items()):
             say(f"  ch{c}: {STOP_WORDS.get(why, why)}")
         say(_disarm_words(d, a.device))
