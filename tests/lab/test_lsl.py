@@ -138,3 +138,21 @@ def test_lsl_without_pylsl_is_one_line_and_the_rest_works(tmp_path):
     r = subprocess.run([exe, "sim", "steady", "--mode", "akhtar", "--no-plot", "--out", str(tmp_path / "o")],
                        env=env, capture_output=True, text=True, timeout=120)  # without --lsl: works
     assert r.returncode == 0, r.stderr
+
+
+def test_monitor_lsl_streams_and_marks_its_disarm(lsl):
+    url = f"sim://steady?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
+    p = steadytouch("monitor", "--lsl", "--lsl-wait", "20", "--seconds", "3", "--device", url)
+    try:
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 0, err
+    _, d = _desc(xml)
+    assert [c.findtext("label") for c in d.find("channels").findall("channel")] == COLUMNS
+    assert d.find("device").findtext("serial") == url and d.findtext("mode") == "akhtar"
+    assert len(samples) > 150 and {s[2] for s in samples} == {0, 1}
+    assert all(b >= a - 1e-3 for a, b in zip(stamps, stamps[1:]))  # in order (two channels share a frame's time)
+    assert [m for m, _ in markers][-2:][0] == "disarm ch=all"
+    assert "monitor:" in out and "disarmed" in out
