@@ -161,7 +161,8 @@ class LabStreams:
         self.markers += 1
 
     def consumers(self) -> bool:
-        return self.tel.have_consumers()
+        """A recorder takes both streams (so the first markers, e.g. arm, are not lost)."""
+        return self.tel.have_consumers() and self.mark.have_consumers()
 
     def close(self) -> None:
         self.tel = self.mark = None
