@@ -154,4 +154,8 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
             assert mon.returncode == 0, err
             assert "disarmed" in out and "plot redraws" in out
         xvfb.terminate()
-        xvfb.wait(timeout=10)
+        try:
+            xvfb.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            xvfb.kill()
+            xvfb.wait(timeout=10)
