@@ -65,6 +65,8 @@ class _Ring:
 
 
 class LivePlot:
+    _window_errors: tuple = ()  # errors of a window that changed under a frame (Tk's TclError)
+
     def __init__(self, seconds: float = 10.0, interactive: bool = True, capacity: int = 4096):
         if interactive and sys.platform.startswith("linux") and not (
                 os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
@@ -137,6 +139,9 @@ class LivePlot:
             root = self.fig.canvas.get_tk_widget()._root()
         except AttributeError:  # not a Tk backend
             return
+        import tkinter
+
+        self._window_errors = (tkinter.TclError,)
         report = root.report_callback_exception
 
         def report_or_keep(exc, val, tb):
@@ -263,14 +268,19 @@ class LivePlot:
             return False
         self.update()
         c = self.fig.canvas
-        if self.background is None:
-            c.draw()  # the draw_event puts the traces on
-            self.full_draws += 1
-        else:
-            c.restore_region(self.background)
-            for a, art in self._animated():
-                a.draw_artist(art)
-        c.blit(self.fig.bbox)
+        try:
+            if self.background is None:
+                c.draw()  # the draw_event puts the traces on
+                self.full_draws += 1
+            else:
+                c.restore_region(self.background)
+                for a, art in self._animated():
+                    a.draw_artist(art)
+            c.blit(self.fig.bbox)
+        except self._window_errors:
+            # the window was resized or re-mapped under us (Tk replaced its image: "TclError: pyimageN"):
+            # the next frame is a full draw at the new size
+            self.background = None
         if self.plt is not None:
             c.flush_events()
             if getattr(self, "_pending_interrupt", None) is not None:

@@ -148,14 +148,21 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
             shot.save(SHOT)
         assert missing == {}, f"traces missing (panel, channel): pixels {missing}; screenshot {tmp_path / 'monitor-plot.png'}"
     finally:
-        if mon is not None and mon.poll() is None:
-            mon.terminate()  # SIGTERM: the monitor disarms and exits
-            out, err = mon.communicate(timeout=20)
-            assert mon.returncode == 0, err
-            assert "disarmed" in out and "plot redraws" in out
+        ended = None
+        if mon is not None:
+            if mon.poll() is None:
+                mon.terminate()  # SIGTERM: the monitor disarms and exits
+            try:
+                ended = mon.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                mon.kill()
+                mon.communicate()
         xvfb.terminate()
         try:
             xvfb.wait(timeout=10)
         except subprocess.TimeoutExpired:
             xvfb.kill()
             xvfb.wait(timeout=10)
+    out, err = ended
+    assert mon.returncode == 0, err
+    assert "disarmed" in out and "plot redraws" in out
