@@ -4,6 +4,7 @@ command a stimulator. User mistakes end in one line on stderr, never a traceback
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import signal
@@ -84,6 +85,8 @@ def sim_meta(a, cal: Calib, m: str) -> dict:
 def cmd_sim(a) -> int:
     keys, duration = scenario_keys(a.scenario)
     check_calibration(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)  # before the VM starts
+    _lab_check(a)
+    _finite("lsl_wait", a.lsl_wait, 0, 3600)
     cal = Calib(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
@@ -98,9 +101,11 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
     for m in modes:
         t0 = time.perf_counter()
         say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
-        def show(t_s, m=m):
+        def show(t_s, m=m, t0=t0):
             if sys.stderr.isatty():
-                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated", end="", file=sys.stderr, flush=True)
+                el = time.perf_counter() - t0
+                left = f", about {el * (duration - t_s) / t_s:.0f} s left" if t_s > 0 else ""
+                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated{left}   ", end="", file=sys.stderr, flush=True)
 
         reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board)
         if sys.stderr.isatty():
@@ -115,6 +120,15 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         files.append(path)
         stops = sorted({STOP_WORDS.get(t.stop, str(t.stop)) for t in tel if t.stop != hp.STOP_NONE})
         say(f"  {len(tel)} pulses in {time.perf_counter() - t0:.1f} s -> {path}" + (f"; stops: {', '.join(stops)}" if stops else ""))
+        if a.lsl:
+            from .lsl.link import stream_run
+
+            c = Commands()
+            auto = [c.set_mode(MODES[m]), c.calibrate(cal.i0_ua, cal.t0_us, cal.x_star_ohm, cal.y_star_pc),
+                    c.arm()]  # what the simulated board's --auto did, for the markers
+            auto = [r[:1] + b"\0" + r[2:] for r in auto]  # its commands carry tag 0
+            meta = dict(sim_meta(a, cal, m), serial=f"sim-{stem}-{m}", n_channels=a.channels)
+            say(stream_run(meta, a.channels, reps, auto, a.lsl_wait, say))
     if not a.no_plot:
         from .plot import fig5
 
@@ -184,6 +198,9 @@ def cmd_arm(a) -> int:
     ch = _channel(a)
     _precheck("arm", ch)
     _finite("seconds", a.seconds, 0, 1e9)
+    from .progress import Progress
+
+    prog = Progress("arm", a.seconds)
     with open_transport(a.device) as t:
         d = Device(t)
         n = d.info().n_channels
@@ -197,10 +214,14 @@ def cmd_arm(a) -> int:
                 say(f"{a.device}: arm: ok; stimulating while this runs (Ctrl-C disarms; {why})")
                 while (t_end is None or time.monotonic() < t_end) and not chans <= set(stopped):
                     rep = d.read(0.25)
-                    if isinstance(rep, Telemetry) and rep.channel in chans and not rep.armed:
-                        stopped[rep.channel] = rep.stop
+                    if isinstance(rep, Telemetry) and rep.channel in chans:
+                        prog.add(rep)
+                        if not rep.armed:
+                            stopped[rep.channel] = rep.stop
+                    prog.tick(f"{d.lost} reports lost")
         except KeyboardInterrupt:
             pass
+        say(prog.summary(f"{d.lost} reports lost"))
         for c, why in sorted(stopped.items()):
             say(f"  ch{c}: {STOP_WORDS.get(why, why)}")
         say(_disarm_words(d, a.device))
@@ -318,6 +339,8 @@ def device_meta(d: Device, url: str) -> dict:
     meta = {"firmware": i.firmware, "board": i.board, "device": url, "i_min_ua": i.i_min_ua,
             "i_max_ua": i.i_max_ua, "t_min_us": i.t_min_us, "t_max_us": i.t_max_us, "q_max_pc": i.q_max_pc,
             "hard_i_max_ua": i.hard_i_max_ua, "hard_q_max_pc": i.hard_q_max_pc, "rate_hz": i.rate_hz}
+    meta.update({"hard_t_max_us": i.hard_t_max_us, "compliance_mv": i.compliance_mv, "n_channels": i.n_channels,
+                 "mode": MODE_WORDS.get(i.mode, i.mode)})  # (the LSL stream's metadata too)
     for ch in range(i.n_channels):
         c: CalInfo = d.calibration(ch)
         if c.calibrated:
@@ -338,18 +361,24 @@ def cmd_record(a) -> int:
     """Telemetry to a CSV streamed as it comes (flushed every second: a killed
     recording keeps all but its last second); the device is kept alive while
     recording and disarmed at the end, however the recording ends."""
+    from .progress import Progress
+
     out = Path(a.file)
     _finite("seconds", a.seconds, 0, 1e9)
+    _finite("lsl_wait", a.lsl_wait, 0, 3600)
+    _lab_check(a)
     with open_transport(a.device) as t:
-        d = Device(t)
+        link = _lab_link(t, a)
+        d = Device(link.tap if link else t)
         meta = device_meta(d, a.device)
+        _lab_start(link, meta, d, a.lsl_wait)
         rec = Recorder(out, meta)
         say(f"recording {a.device} -> {out}  (Ctrl-C to stop)")
         t_end = time.monotonic() + a.seconds if a.seconds else None
-        last = 0.0
+        prog = Progress("record", a.seconds)
         lost_device = None
         try:
-            with d.live(arm=hp.CH_ALL if a.arm else None):
+            with d.live(arm=hp.CH_ALL if a.arm else None), _lab_samples(link):
                 while t_end is None or time.monotonic() < t_end:
                     try:
                         rep = d.read(0.5)
@@ -358,34 +387,96 @@ def cmd_record(a) -> int:
                         break
                     if isinstance(rep, Telemetry):
                         rec.write(rep)
-                    now = time.monotonic()
-                    if now - last >= 1.0 and sys.stderr.isatty():
-                        last = now
-                        print(f"\r  {rec.rows} pulses, {d.lost} reports lost", end="", file=sys.stderr, flush=True)
+                        prog.add(rep)
+                    prog.tick(f"{d.lost} reports lost")
         except KeyboardInterrupt:
             pass
         finally:
             rec.close()
-        if sys.stderr.isatty():
-            print(file=sys.stderr)
         bad = f", {d.bad} undecodable reports skipped" if d.bad else ""
-        say(f"saved {rec.rows} pulses to {out} ({d.lost} reports lost{bad})")
+        say(prog.summary(f"{d.lost} reports lost{bad}"))
+        say(f"saved {rec.rows} rows to {out}")
         say(_disarm_words(d, a.device))
+        _lab_finish(link)
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
             return 1
     return 0
 
 
+def _lab_check(a) -> None:
+    """--lsl without pylsl: one line saying how to get it, before the device is opened."""
+    if getattr(a, "lsl", False):
+        from .lsl import require
+
+        require()
+
+
+def _lab_link(t, a):
+    if not getattr(a, "lsl", False):
+        return None
+    from .lsl.link import LabLink
+
+    return LabLink(t, a.device)
+
+
+def _lab_start(link, meta: dict, d: Device, wait_s: float = 0.0) -> None:
+    """Open the outlets; with --lsl-wait, wait (keeping the device alive) for a recorder to connect."""
+    if link is None:
+        return
+    meta["serial"] = link.serial()
+    link.start(meta, int(meta["n_channels"]))
+    say("LSL: streaming 'steadytouch telemetry' (StimTelemetry) and 'steadytouch markers' (Markers)")
+    if wait_s > 0 and not link.streams.consumers():
+        say(f"LSL: waiting up to {wait_s:g} s for a recorder (e.g. LabRecorder) to connect ...")
+        if d.t.realtime:
+            d.keep_alive()
+        end = time.monotonic() + wait_s
+        feed, link.tap.feed = link.tap.feed, None  # the LSL stream starts with the recording, not before
+        try:
+            while not link.streams.consumers() and time.monotonic() < end:
+                d.read(0.05)
+        finally:
+            link.tap.feed = feed
+        if not link.streams.consumers():
+            say("LSL: no recorder connected; going on")
+
+
+@contextlib.contextmanager
+def _lab_samples(link):
+    """Pulses go on the LSL stream while the recording loop runs (the CSV's rows); the markers
+    of what follows (the closing DISARM) still go out."""
+    try:
+        yield
+    finally:
+        if link is not None and link.feed is not None:
+            link.feed.samples = False
+
+
+def _lab_finish(link) -> None:
+    if link is not None:
+        say(link.finish())
+
+
 def cmd_monitor(a) -> int:
     from .monitor import LivePlot, MonitorState
+    from .progress import Progress
 
     state = MonitorState()
     tty = sys.stdout.isatty()
-    live = LivePlot() if a.plot else None
     _finite("seconds", a.seconds, 0, 1e9)
+    _finite("lsl_wait", a.lsl_wait, 0, 3600)
+    _lab_check(a)
+    live = LivePlot() if a.plot else None
+    prog = Progress("monitor", a.seconds)
     with open_transport(a.device) as t:
-        d = Device(t)
+        link = _lab_link(t, a)
+        d = Device(link.tap if link else t)
+        if link or live:
+            meta = device_meta(d, a.device)
+            _lab_start(link, meta, d, a.lsl_wait)
+            if live:
+                live.set_meta(meta)
         t_end = time.monotonic() + a.seconds if a.seconds else None
         next_draw = 0.0
         lost = None
@@ -395,6 +486,7 @@ def cmd_monitor(a) -> int:
                     rep = d.read(0.05)
                     if isinstance(rep, Telemetry):
                         state.add(rep)
+                        prog.add(rep)
                         if live:
                             live.add(rep)
                     now = time.monotonic()
@@ -404,7 +496,7 @@ def cmd_monitor(a) -> int:
                             break  # the window was closed
                         screen = state.render(a.device, d.lost)
                         if tty:
-                            sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n")
+                            sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n" + prog.line() + "\n")
                             sys.stdout.flush()
         except KeyboardInterrupt:
             pass
@@ -412,8 +504,10 @@ def cmd_monitor(a) -> int:
             lost = e
         if not tty or lost:
             say(state.render(a.device, d.lost))
+        say(prog.summary(f"{d.lost} reports lost" + (f", {live.draws} plot redraws" if live else "")))
         if d.disarmed is not None:
             say(_disarm_words(d, a.device))
+        _lab_finish(link)
         if lost:
             print(f"steadytouch: device lost: {lost}", file=sys.stderr)
             return 1
@@ -707,6 +801,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-plot", action="store_true", help="skip the PNG")
     s.add_argument("--ideal-board", action="store_true", help="the ideal board instead of the one with the real "
                    "parts' errors (DAC steps, ADC noise and DNL, monitor gain/offset; docs/simulation.md)")
+    s.add_argument("--lsl", action="store_true", help="also stream each run on Lab Streaming Layer (docs/lab.md)")
+    s.add_argument("--lsl-wait", type=float, default=30.0,
+                   help="with --lsl: seconds to wait for a recorder to connect before streaming a run (default 30)")
     for k, v in (("--i0-ua", 1000), ("--t0-us", 1000), ("--x-star-ohm", -1670), ("--y-star-pc", 186000)):
         s.add_argument(k, type=int, default=v)
 
@@ -717,6 +814,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated)")
     s.add_argument("--plot", action="store_true", help="also a live plot window (matplotlib; needs a display)")
+    s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
+    s.add_argument("--lsl-wait", type=float, default=0.0,
+                   help="with --lsl: seconds to wait for a recorder to connect before starting (default 0)")
 
     s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
@@ -724,6 +824,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated); "
                    "the device is kept alive while recording and disarmed at the end")
+    s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
+    s.add_argument("--lsl-wait", type=float, default=0.0,
+                   help="with --lsl: seconds to wait for a recorder to connect before starting (default 0)")
 
     s = add("audit", cmd_audit, "replay a recording through the host reference; non-zero exit on any mismatch",
             "  steadytouch audit session.csv", device=False)

@@ -1,15 +1,13 @@
 """Live view of telemetry: per-channel state folded from reports, rendered as a
 terminal screen (at most every `interval` seconds, so ingest never waits on
-the screen)."""
+the screen); the window (`--plot`) is host/liveview.py."""
 
 from __future__ import annotations
-
-import sys
-from collections import deque
 
 import hid_protocol as hp
 import sensation_core as sc
 
+from .liveview import LivePlot  # noqa: F401  (the window, for the CLI)
 from .protocol import STOP_WORDS, Telemetry
 
 _BOUND_WORDS = ((sc.ST_I_MIN, "I min"), (sc.ST_I_MAX, "I max"), (sc.ST_T_MIN, "T min"), (sc.ST_T_MAX, "T max"),
@@ -55,52 +53,3 @@ class MonitorState:
             any_t = next(iter(self.last.values()))
             lines.append(f"overruns {any_t.overruns}   loop {any_t.loop_us} us")
         return "\n".join(lines)
-
-
-class LivePlot:
-    """An optional live window (matplotlib): Rp, I, T and mQ error of the last
-    10 s per channel, redrawn with the terminal view."""
-
-    def __init__(self, seconds: float = 10.0):
-        import os
-
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            raise RuntimeError("--plot needs a display (no DISPLAY is set); the terminal view works without one")
-        import matplotlib.pyplot as plt
-
-        self.plt = plt
-        plt.ion()
-        self.fig, self.ax = plt.subplots(4, 1, figsize=(8, 8), sharex=True)
-        for a, lab in zip(self.ax, ("Rp (kΩ)", "I (mA)", "T (µs)", "mQ − target (µC/kΩ)")):
-            a.set_ylabel(lab)
-            a.grid(alpha=0.3)
-        self.ax[-1].set_xlabel("time (s)")
-        self.keep_us = int(seconds * 1e6)
-        self.data: dict[int, deque] = {}
-        self.lines: dict[int, list] = {}
-
-    def add(self, t: Telemetry) -> None:
-        if t.i_ua:
-            self.data.setdefault(t.channel, deque(maxlen=4000)).append(
-                (t.time_us, t.rp_ohm / 1e3, t.i_ua / 1e3, t.t_us, (t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm) / 1e6))
-
-    def draw(self) -> bool:
-        if not self.plt.fignum_exists(self.fig.number):
-            return False
-        for ch, dq in self.data.items():
-            if not dq:
-                continue
-            t_end = dq[-1][0]
-            pts = [p for p in dq if (t_end - p[0]) % (1 << 30) <= self.keep_us]
-            x = [-((t_end - p[0]) % (1 << 30)) / 1e6 for p in pts]
-            if ch not in self.lines:
-                self.lines[ch] = [a.plot([], [], lw=1, label=f"ch{ch}")[0] for a in self.ax]
-                self.ax[0].legend(fontsize=7)
-            for k, line in enumerate(self.lines[ch]):
-                line.set_data(x, [p[k + 1] for p in pts])
-        for a in self.ax:
-            a.relim()
-            a.autoscale_view()
-        self.fig.canvas.draw_idle()
-        self.plt.pause(0.001)
-        return True

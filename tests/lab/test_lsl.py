@@ -1,0 +1,158 @@
+"""LSL outlets of `record --lsl` and `sim --lsl`, received by an inlet on this machine
+(LSLAPICFG: the loopback configuration, see conftest.lsl)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import uuid
+import xml.etree.ElementTree as ET
+
+import hid_protocol as hp
+
+from steadytouch.lsl.streams import STOP_REASONS, unit
+from steadytouch.record import COLUMNS, read_recording
+
+from .conftest import pull_all, steadytouch
+
+AUTO = "1000,1000,-1670,186000"
+
+
+def _desc(xml: str):
+    root = ET.fromstring(xml)
+    return root, root.find("desc")
+
+
+def _check_layout_and_meta(xml: str, meta: dict, n_channels: int):
+    root, d = _desc(xml)
+    assert root.findtext("type") == "StimTelemetry"
+    assert root.findtext("channel_format") == "int32"
+    assert int(root.findtext("channel_count")) == len(COLUMNS)
+    chans = d.find("channels").findall("channel")
+    assert [c.findtext("label") for c in chans] == COLUMNS  # exactly the CSV's columns, in order
+    assert [c.findtext("unit") for c in chans] == [unit(c) for c in COLUMNS]
+    units = dict(zip(COLUMNS, (c.findtext("unit") for c in chans)))
+    assert (units["i_ua"], units["t_us"], units["vp_mv"], units["rp_ohm"], units["me_ua2ms"],
+            units["mq_target_fc_per_ohm"]) == ("uA", "us", "mV", "ohm", "uA^2*ms", "fC/ohm")
+    dev = d.find("device")
+    assert dev.findtext("firmware") == meta["firmware"]
+    assert dev.findtext("serial") == meta["serial"]
+    assert dev.findtext("n_channels") == str(n_channels)
+    assert d.findtext("mode") == meta["mode"]
+    lim = d.find("limits")
+    for k in ("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"):
+        assert lim.findtext(k) == str(meta[k]), k
+    cal = d.find("calibration").findall("channel")
+    assert [int(c.findtext("index")) for c in cal] == list(range(n_channels))
+    for c in cal:
+        ch = c.findtext("index")
+        for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc", "rp0_ohm"):
+            want = meta.get(f"ch{ch}_{k}", meta.get(k))
+            if want is not None:
+                assert c.findtext(k) == str(want), (ch, k)
+    assert "minima" in d.find("clock").findtext("timestamps") or "virtual" in d.find("clock").findtext("timestamps")
+
+
+def test_record_lsl_equals_the_csv_and_marks_arm_stop_disarm(lsl, tmp_path):
+    url = f"sim://off?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
+    csv = tmp_path / "run.csv"
+    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", "6.5", "--device", url)
+    try:
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 0, err
+    meta, rows = read_recording(csv)
+    assert meta["serial"] == url
+    _check_layout_and_meta(xml, meta, 2)
+
+    # every pulse the inlet got equals the CSV row of the same seq, and none is missing after the first
+    by_seq = {r["seq"]: [r[c] for c in COLUMNS] for r in rows}
+    assert len(samples) > 400
+    for s in samples:
+        assert by_seq[s[0]] == s
+    first = samples[0][0]
+    assert [s[0] for s in samples] == [r["seq"] for r in rows if r["seq"] >= first]
+
+    texts = [m for m, _ in markers]
+    arm = texts.index("arm ch=all")
+    stop0 = texts.index(f"stop ch=0 reason={STOP_REASONS[hp.STOP_ELECTRODE_OFF]}")
+    disarm = texts.index("disarm ch=all")
+    assert arm < stop0 < disarm, texts
+    ts = dict(markers)
+    assert ts["arm ch=all"] <= ts["stop ch=0 reason=electrode_off"] < ts["disarm ch=all"]
+    # the stop marker sits at the first pulse report that carries the stop
+    k = next(k for k, s in enumerate(samples) if s[COLUMNS.index("channel")] == 0
+             and s[COLUMNS.index("stop")] == hp.STOP_ELECTRODE_OFF)
+    assert abs(ts["stop ch=0 reason=electrode_off"] - stamps[k]) < 1e-9
+    # timestamps follow the device clock: 20 ms frames stay 20 ms apart (the fit moves them by far less)
+    t_col = COLUMNS.index("time_us")
+    ch0 = [(s[t_col], t) for s, t in zip(samples, stamps) if s[2] == 0]
+    gaps = [(t2 - t1) - ((d2 - d1) % (1 << 30)) / 1e6 for (d1, t1), (d2, t2) in zip(ch0, ch0[1:])]
+    assert max(abs(g) for g in gaps[50:]) < 1e-3
+    assert "LSL:" in out and "disarmed" in out
+
+
+def test_sim_lsl_streams_the_whole_run_on_its_virtual_clock(lsl, tmp_path):
+    tag = uuid.uuid4().hex[:8]
+    scen = tmp_path / f"off-{tag}.csv"  # the off scenario, under a name of this test's own
+    scen.write_text("time_s,contact,hydration\n0,1,1\n3,1,1\n3.02,0,1\n4,0,1\n")
+    p = steadytouch("sim", str(scen), "--mode", "akhtar", "--channels", "2", "--lsl", "--lsl-wait", "20",
+                    "--no-plot", "--out", str(tmp_path))
+    try:
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-sim-off-{tag}-akhtar", p)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 0, err
+    meta, rows = read_recording(tmp_path / f"off-{tag}-akhtar.csv")
+    meta["serial"] = f"sim-off-{tag}-akhtar"
+    _check_layout_and_meta(xml, meta, 2)
+    assert samples == [[r[c] for c in COLUMNS] for r in rows]  # all of them, in order
+    t_col = COLUMNS.index("time_us")
+    for (s1, t1), (s2, t2) in zip(zip(samples, stamps), zip(samples[1:], stamps[1:])):
+        assert abs((t2 - t1) - (s2[t_col] - s1[t_col]) / 1e6) < 1e-6
+    texts = [m for m, _ in markers]
+    assert texts[:3] == ["mode akhtar rate_hz=unchanged",
+                         "calibrate ch=all i0_ua=1000 t0_us=1000 x_star_ohm=-1670 y_star_pc=186000", "arm ch=all"]
+    assert "stop ch=0 reason=electrode_off" in texts and "stop ch=1 reason=electrode_off" in texts
+    assert texts[-1].startswith("clock virtual")
+
+
+def test_lsl_without_pylsl_is_one_line_and_the_rest_works(tmp_path):
+    fake = tmp_path / "nolsl"
+    fake.mkdir()
+    (fake / "pylsl.py").write_text("raise ImportError('No module named pylsl')\n")
+    env = dict(os.environ, PYTHONPATH=str(fake))
+    exe = os.path.join(os.path.dirname(sys.executable), "steadytouch")
+    for args in (["record", str(tmp_path / "r.csv"), "--lsl", "--device", "sim://steady"],
+                 ["sim", "steady", "--lsl", "--no-plot", "--out", str(tmp_path / "o")],
+                 ["monitor", "--lsl", "--device", "sim://steady"]):
+        r = subprocess.run([exe, *args], env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, r
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+        assert "pip install" in r.stderr and "pylsl==1.18.6" in r.stderr
+        assert not (tmp_path / "r.csv").exists() and not (tmp_path / "o").exists()
+    r = subprocess.run([exe, "sim", "steady", "--mode", "akhtar", "--no-plot", "--out", str(tmp_path / "o")],
+                       env=env, capture_output=True, text=True, timeout=120)  # without --lsl: works
+    assert r.returncode == 0, r.stderr
+
+
+def test_monitor_lsl_streams_and_marks_its_disarm(lsl):
+    url = f"sim://steady?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
+    p = steadytouch("monitor", "--lsl", "--lsl-wait", "20", "--seconds", "3", "--device", url)
+    try:
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 0, err
+    _, d = _desc(xml)
+    assert [c.findtext("label") for c in d.find("channels").findall("channel")] == COLUMNS
+    assert d.find("device").findtext("serial") == url and d.findtext("mode") == "akhtar"
+    assert len(samples) > 150 and {s[2] for s in samples} == {0, 1}
+    assert all(b >= a - 1e-3 for a, b in zip(stamps, stamps[1:]))  # in order (two channels share a frame's time)
+    assert [m for m, _ in markers][-2:][0] == "disarm ch=all"
+    assert "monitor:" in out and "disarmed" in out
