@@ -12,7 +12,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "steadytouch needs Python >= 3.10; set PYTHON=python3.11")'
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev,lab]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev,lab,docs]'
 	# the PIO assembler for the emulator tests; --no-deps: its deps would install fake micropython/board modules
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps adafruit-circuitpython-pioasm==1.3.8
 	@touch $@
