@@ -27,6 +27,9 @@ import sensation_core as sc
 from .device import Device
 from .protocol import Telemetry
 
+# a delivered pulse is at most one DAC step (10 mA / 4096 = 2.44 uA, whole uA) below the command
+DAC_STEP_UA = 3
+
 T_STEPS_US = list(range(200, 701, 50))
 STEP = 0.03  # relative change of I per key press
 
@@ -79,7 +82,8 @@ class Session:
         try:
             while (time.monotonic() < t_end or len(rps) < 3) and time.monotonic() < t_give_up:
                 rep = d.read(0.1)
-                if isinstance(rep, Telemetry) and rep.channel == self.ch and rep.i_ua == i_ua and rep.t_us == t_us:
+                if isinstance(rep, Telemetry) and rep.channel == self.ch and rep.t_us == t_us \
+                        and i_ua - DAC_STEP_UA <= rep.i_ua <= i_ua:  # delivered: the DAC rounds down
                     rps.append(rep.rp_ohm)
                     if rep.stop not in (hp.STOP_NONE,):
                         break

@@ -17,11 +17,12 @@ import sensation_core as sc
 import stim, board_sim, sim_electrode
 from board_sim import SimBoard, VirtualClock, MemoryUSB
 
-def make(scenario="steady", n=2, start=0, seed=1, keep=True, rate=50, keepalive_ms=0):
+def make(scenario="steady", n=2, start=0, seed=1, keep=True, rate=50, keepalive_ms=0, ideal=True):
     clock = VirtualClock(start)
     usb = MemoryUSB(keep)
     sce = sim_electrode.scenario(scenario)
-    board = SimBoard(cfg, clock, sce, n, seed, usb)
+    # the ideal board: these tests check the firmware's logic and math (the realistic board: test_board_sim.py)
+    board = SimBoard(cfg, clock, sce, n, seed, usb, ideal=ideal)
     s = stim.Stimulator(board, clock, cfg, n, rate, keepalive_ms)
     return s, board, usb, clock
 

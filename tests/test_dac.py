@@ -155,7 +155,7 @@ class QBoard(SimBoard):
         return d
 clock = VirtualClock(0)
 usb = MemoryUSB(True)
-board = QBoard(cfg, clock, sim_electrode.scenario("{scenario}"), 2, 3, usb)
+board = QBoard(cfg, clock, sim_electrode.scenario("{scenario}"), 2, 3, usb, ideal=True)
 s = stim.Stimulator(board, clock, cfg, 2, 50, 0)
 start(s, i0={i0}, t0={t0}, mode={mode})
 cmd = []
@@ -218,7 +218,7 @@ class Liar(SimBoard):
         return i_ua if self.said is None else self.said
 clock = VirtualClock(0)
 usb = MemoryUSB(True)
-board = Liar(cfg, clock, sim_electrode.scenario("steady"), 1, 1, usb)
+board = Liar(cfg, clock, sim_electrode.scenario("steady"), 1, 1, usb, ideal=True)
 s = stim.Stimulator(board, clock, cfg, 1, 50, 0)
 start(s)
 s.run(3)
