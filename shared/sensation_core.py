@@ -376,8 +376,9 @@ class Controller:
             t = t_max
             if i <= self.i_max_ua:  # (above it the current ceiling below holds I at i_max)
                 t = (qf + (i << 3)) // (i << 4)
-                if t < t_min:
+                if t < t_min:  # T pinned (t_min near t_max): the current nearest Q / t_min (never above I)
                     t = t_min
+                    i = (qf + (t_min << 3)) // (t_min << 4)
             st |= ST_T_MAX
         elif t < t_min:
             t = t_min
