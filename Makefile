@@ -17,9 +17,10 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps adafruit-circuitpython-pioasm==1.3.8
 	@touch $@
 
-## test: the whole suite (sets up first if needed)
+## test: the whole suite (sets up first if needed), on every core: tests that share the emulated Pico or
+##       LSL's network run in one worker (tests/conftest.py)
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup
 
 ## run: the main job: the firmware in the MicroPython VM on the simulated peel test, telemetry on the host
 run: setup

@@ -80,3 +80,20 @@ def _sim_flash(tmp_path_factory):
         os.environ.pop("STEADYTOUCH_SIM_FLASH", None)
     else:
         os.environ["STEADYTOUCH_SIM_FLASH"] = old
+
+
+# `make test` runs the suite on every core (pytest-xdist, --dist loadgroup). Tests that share one
+# resource run in one worker, one after another: the emulated Pico's cache (.cache/chip: npm, .mpy
+# files, flash images) and its CPU-heavy boots; LSL's one loopback network (streams resolved by name).
+_GROUPS = (("chip", "emu"), ("flash", "emu"), ("test_emu_transport.py", "emu"), ("lab", "lsl"))
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    tests = Path(__file__).resolve().parent
+    for it in items:
+        rel = Path(it.path).resolve().relative_to(tests).parts
+        for first, group in _GROUPS:
+            if rel and rel[0] == first:
+                it.add_marker(pytest.mark.xdist_group(group))
+                break
