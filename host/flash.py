@@ -519,6 +519,16 @@ def boot_check_hid(port: str, url: str, want: str, timeout_s: float, say):
     return info
 
 
+def _raise_boot_log(st: BoardState, say) -> None:
+    """The board's error log, if the firmware left one: show it and stop."""
+    if st.log:
+        say("the firmware failed at boot:")
+        for line in st.log.rstrip().splitlines():
+            say("      " + line)
+        raise FlashError(f"the firmware did not boot (its log is {ERROR_LOG} on the board); the board waits in the "
+                         "REPL with every output off")
+
+
 def _no_hid(port: str, url: str, timeout_s: float, last: str, say):
     """The HID interface did not appear in time: ask the serial port why, and say what to check."""
     try:
@@ -528,12 +538,7 @@ def _no_hid(port: str, url: str, timeout_s: float, last: str, say):
                          f"within {timeout_s:.0f} s ({e}): check the USB cable (a data cable, not a charge-only one), "
                          "plug the board in again and run flash again") from None
     try:
-        if st.log:
-            say("the firmware failed at boot:")
-            for line in st.log.rstrip().splitlines():
-                say("      " + line)
-            raise FlashError(f"the firmware did not boot (its log is {ERROR_LOG} on the board); the board waits in "
-                             "the REPL with every output off")
+        _raise_boot_log(st, say)
         if st.frames:
             raise FlashError(f"the firmware runs ({st.frames} frames, seen over the serial REPL on {port}) but its HID "
                              f"interface {url} cannot be reached within {timeout_s:.0f} s: {last}. On Linux install "
@@ -570,12 +575,7 @@ def boot_check(port: str, timeout_s: float, say, want: str | None = None, why: s
         link.reset()  # stopped before its first frame (or while importing): boot again, wait longer
         wait_s *= 2
     try:
-        if st.log:
-            say("the firmware failed at boot:")
-            for line in st.log.rstrip().splitlines():
-                say("      " + line)
-            raise FlashError(f"the firmware did not boot (its log is {ERROR_LOG} on the board); the board "
-                             "waits in the REPL with every output off")
+        _raise_boot_log(st, say)
         if st.fw is None or not st.frames:
             raise FlashError("the firmware did not start its loop after the reset (no steadytouch module "
                              "running); see the board's output with `mpremote connect PORT repl`")
