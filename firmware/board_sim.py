@@ -198,10 +198,11 @@ class StdioUSB:
 
 
 # the monitor correction (steadytouch selftest) is the device's own code: vmon_cal
+import vmon_cal
 from vmon_cal import CAL_GAIN_PPM, CAL_HEADER, CAL_OFFSET_MV  # noqa: F401 (names for the host and tests)
 from vmon_cal import correct as correct_count  # noqa: F401
 from vmon_cal import parse as parse_correction  # noqa: F401
-from vmon_cal import terms as correction_terms
+from vmon_cal import terms as correction_terms  # noqa: F401
 
 
 class SimBoard:
@@ -210,10 +211,13 @@ class SimBoard:
     ideal: False (default) the realistic analog path (AnalogPath); True the ideal one.
     load_ohm: a resistor on every channel instead of the electrodes (self-test).
     correction: [(gain_ppm, offset_mv) or None per channel], the monitor correction
-    the board applies to every ADC sample (from `steadytouch selftest`)."""
+    handed to the firmware at boot (stim._measure applies it to each pulse's peak);
+    flash_dir: the board's flash folder instead, as the rp2 board reads /vmon_cal.txt
+    (a missing or corrupt file: uncorrected, vmon_state says which) and where
+    store_vmon() writes it (CMD_SET_VMON ... VMON_STORE)."""
 
     def __init__(self, cfg, clock, scenario, n_channels=2, seed=1, usb=None, electrodes=None,
-                 noise_counts=None, ideal=False, load_ohm=0, correction=None):
+                 noise_counts=None, ideal=False, load_ohm=0, correction=None, flash_dir=None):
         self.cfg = cfg
         self.clock = clock
         self.scenario = scenario
@@ -249,11 +253,16 @@ class SimBoard:
         self.last_rp_kohm = [0.0] * n_channels  # the true Rp of the last pulse (kohm)
         self.last_i_ua = [0.0] * n_channels  # the true (physical) current of the last pulse (uA)
         self.align_end = False  # True: the ADC's last sample lands on the pulse's end (capture started T mod dt late)
-        self.corr = [None] * n_channels
+        self.cal_path = None
+        self.vmon_state = 0  # hp.VMON_NONE
+        self.vmon_cal = [None] * n_channels
+        if flash_dir:
+            self.cal_path = flash_dir.rstrip("/") + "/" + vmon_cal.CAL_FILE
+            self.vmon_cal, self.vmon_state = vmon_cal.boot_load(self.cal_path, n_channels)
         if correction:
             for k in range(n_channels):
                 if k < len(correction) and correction[k]:
-                    self.corr[k] = correction_terms(correction[k][0], correction[k][1], cfg.VMON_UV_PER_COUNT)
+                    self.vmon_cal[k] = correction[k]
 
     # -------------------------------------------------- the scenario's clock
     def _advance_scenario(self):
@@ -333,7 +342,6 @@ class SimBoard:
         gain = an.mon_gain[ch] * g * 1000.0 / uv  # electrode mV -> ADC counts
         off = an.mon_off_counts[ch]
         dnl = an.dnl
-        corr = self.corr[ch]
         since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
         left = 1.0  # e^(-t/tau) at t = (k+1) dt (+ lag)
         lag = 0
@@ -359,8 +367,6 @@ class SimBoard:
             c = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
             if dnl is not None:
                 c = dnl[c]
-            if corr is not None:
-                c = correct_count(c, corr[0], corr[1])
             buf[k] = c
         v_end = i_end / 1000.0 * self.last_rp_kohm[ch] * 1000.0 if on else full
         self.last_i_ua[ch] = i_end if v_end <= full else full / self.last_rp_kohm[ch]
@@ -369,6 +375,11 @@ class SimBoard:
             self.spike[ch] = 0
         self.clock.advance(t_us)
         return n
+
+    def store_vmon(self, values):
+        """Write the monitor correction to the board's flash folder (CMD_SET_VMON ...
+        VMON_STORE); False without one (nothing written)."""
+        return self.cal_path is not None and vmon_cal.store(self.cal_path, values)
 
     def send(self, buf):
         self.usb.send(buf)

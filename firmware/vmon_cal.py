@@ -4,12 +4,18 @@
 # channel. Read once at boot (load); applying it is integer-only with every
 # intermediate < 2**30 (correct), and monotonic, so correcting the peak of a
 # pulse equals correcting every sample before the peak search.
-# Used by the simulated board (board_sim) today; on the rp2, board_rp2 would
-# load it at boot the same way (not wired yet).
+# Both boards read it at boot (board_rp2.load_vmon, board_sim.SimBoard: boot_load,
+# which never raises: a missing file or a corrupt one leaves the monitors
+# uncorrected and says which in its state, reported by GET_INFO) and write it
+# when the host sends CMD_SET_VMON ... VMON_STORE (store: a temporary file
+# renamed over the old one, so a reset mid-write keeps the old file or the new
+# one, never half of one). stim._measure applies it to each pulse's peak count.
+import hid_protocol as hp
+
 CAL_HEADER = "steadytouch monitor correction v1"
 CAL_FILE = "vmon_cal.txt"
-CAL_GAIN_PPM = (900000, 1100000)  # accepted monitor gain (measured/true) in ppm
-CAL_OFFSET_MV = (-2000, 2000)  # accepted monitor offset (electrode-referred mV)
+CAL_GAIN_PPM = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # accepted monitor gain (measured/true) in ppm
+CAL_OFFSET_MV = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)  # accepted monitor offset (electrode-referred mV)
 ADC_MAX = 4095
 
 
@@ -45,6 +51,44 @@ def load(path, n_channels):
     except OSError:
         return None
     return parse(text, n_channels)
+
+
+def boot_load(path, n_channels):
+    """(values, state) for a board's boot: values as parse() (None per channel when
+    nothing usable is stored); state hp.VMON_NONE (no file), VMON_LOADED or VMON_BAD
+    (unreadable or out of range: ignored). Never raises."""
+    try:
+        f = open(path)
+    except OSError:
+        return [None] * n_channels, hp.VMON_NONE
+    try:
+        with f:
+            return parse(f.read(), n_channels), hp.VMON_LOADED
+    except Exception:  # ValueError, UnicodeError (not UTF-8), OSError, MemoryError: never a crash at boot
+        return [None] * n_channels, hp.VMON_BAD
+
+
+def text(values):
+    """The file's text for values [(gain_ppm, offset_mv) or None per channel]."""
+    out = CAL_HEADER + "\n# CH GAIN_PPM OFFSET_MV: measured mV = gain x true mV + offset (steadytouch selftest)\n"
+    for ch in range(len(values)):
+        if values[ch]:
+            out += "%d %d %d\n" % (ch, values[ch][0], values[ch][1])
+    return out
+
+
+def store(path, values):
+    """Write the file for values: a temporary file renamed over the old one. True if written."""
+    import os
+
+    tmp = path + ".tmp"
+    try:
+        with open(tmp, "w") as f:
+            f.write(text(values))
+        os.rename(tmp, path)
+    except OSError:
+        return False
+    return True
 
 
 def terms(gain_ppm, offset_mv, uv_per_count):
