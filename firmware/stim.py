@@ -796,16 +796,14 @@ class Stimulator:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
         c = self.chans[ch]
         if op == hp.VMON_STORE:
-            store = getattr(self.board, "store_vmon", None)
-            if store is None:
-                return self._ack(r, hp.RES_STORE_FAILED, 0)
             locked = self.locked
-            if locked:
+            if locked:  # everything from here allocates (a bound method, the list, the file)
                 self._leave()
             try:
+                store = getattr(self.board, "store_vmon", None)
                 values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
                 values[ch] = (g, off) if g else None
-                ok = store(values)
+                ok = store is not None and store(values)
                 if ok:
                     c.vmon_stored = values[ch]
             finally:

@@ -36,6 +36,16 @@ def rps(s, frames=6):
     s.board.usb.sent.clear()
     return [out[0], out[1]]
 
+def locked(s, rep):
+    # as _serve_commands handles a command: inside the heap-locked section
+    r = bytearray(rep)
+    now = s.clock.ticks_us()
+    s._enter()
+    try:
+        return s.handle(r, now)
+    finally:
+        s._leave()
+
 def board(correction=None, flash_dir=None):
     clock = VirtualClock(0)
     usb = MemoryUSB(True)
@@ -89,7 +99,7 @@ before = rps(s)
 out = {}
 """
     for name, (rep, _, _) in cases.items():
-        body += f"out[{name!r}] = (apply(s, {bytes(rep)!r}), s.tx[hp.O_DETAIL])\n"
+        body += f"out[{name!r}] = (locked(s, {bytes(rep)!r}), s.tx[hp.O_DETAIL])\n"
     body += f"""
 armed = s.handle(bytearray(hp.cmd_calibrate(b, hp.CH_ALL, 3000, 300, 0, 0)), 0), s.handle(bytearray(hp.cmd_arm(b, 1)), 0)
 out["armed"] = (apply(s, {bytes(ok)!r}), s.tx[hp.O_DETAIL])
@@ -133,8 +143,8 @@ b = bytearray(64)
 s = board(flash_dir={flash!r})
 state0 = s.vmon_state
 raw = rps(s)
-r1 = apply(s, hp.cmd_set_vmon(b, 0, hp.VMON_STORE, {corr[0]}, {corr[1]}))
-r2 = apply(s, hp.cmd_set_vmon(b, 1, hp.VMON_APPLY, 1010000, 0))  # RAM only: not in the file
+r1 = locked(s, hp.cmd_set_vmon(b, 0, hp.VMON_STORE, {corr[0]}, {corr[1]}))
+r2 = locked(s, hp.cmd_set_vmon(b, 1, hp.VMON_APPLY, 1010000, 0))  # RAM only: not in the file
 state1 = s.vmon_state
 s2 = board(flash_dir={flash!r})  # a reset: a new board reads its flash
 result(state0=state0, state1=state1, r=[r1, r2], raw=raw, after_reset=rps(s2), state2=s2.vmon_state,
