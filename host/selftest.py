@@ -4,9 +4,14 @@ With a resistor R in place of the electrodes, every pulse should read Vp = I R.
 The self-test pulses each channel across currents and widths (open loop, a few
 pulses per point), fits  Vp_measured = G (I R) + offset  by least squares
 (numpy), reports the linearity (residuals) and the worst Rp error before and
-after the correction, and stores the correction where the firmware reads it at
-boot (the simulated board: `vmon_cal.txt` in its flash folder, see
-simrun.sim_flash_dir; a board: the same file, copied to its flash).
+after the correction, and stores the correction on the device itself, the same
+way on every transport: CMD_SET_VMON (hid_protocol) with VMON_STORE makes the
+firmware write `vmon_cal.txt` to its own flash (the rp2 board's littlefs; the
+simulated board's flash folder, simrun.sim_flash_dir) and apply it; GET_INFO
+reads it back; the firmware reads the file at every boot. The raw monitor is
+measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
+interrupted self-test leaves the stored correction as it was (it returns at the
+next reset; the self-test also puts the old one back when it stops).
 
 What a resistor can and cannot tell (docs/simulation.md, "Self-test"): the
 measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor sees
@@ -19,6 +24,7 @@ Units: uA, us, mV, ohm; gains in ppm in the stored file.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +35,8 @@ import sensation_core as sc
 
 CAL_FILE = "vmon_cal.txt"  # firmware/vmon_cal.py CAL_FILE
 CAL_HEADER = "steadytouch monitor correction v1"  # firmware/vmon_cal.py CAL_HEADER
-GAIN_PPM_RANGE = (900_000, 1_100_000)  # what the firmware accepts (vmon_cal.CAL_GAIN_PPM)
-OFFSET_MV_RANGE = (-2000, 2000)
+GAIN_PPM_RANGE = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # what the firmware accepts (CMD_SET_VMON)
+OFFSET_MV_RANGE = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)
 LOAD_OHM_RANGE = (1000, 100_000)
 CURRENTS_UA = (500, 1000, 2000, 3000, 4500, 6000, 8000)
 WIDTHS_US = (100, 300, 1000)
@@ -144,7 +150,7 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
     return out
 
 
-def save(fits: list[ChannelFit], folder: Path) -> Path:
+def check_range(fits: list[ChannelFit]) -> None:
     bad = [f for f in fits if not f.in_range()]
     if bad:
         f = bad[0]
@@ -152,9 +158,91 @@ def save(fits: list[ChannelFit], folder: Path) -> Path:
                             f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}] / "
                             f"[{OFFSET_MV_RANGE[0]}, {OFFSET_MV_RANGE[1]}] mV: check the load's value and wiring; "
                             "nothing was stored")
+
+
+def save(fits: list[ChannelFit], folder: Path) -> Path:
+    """A copy of the correction in a file on this computer (the device stores its own)."""
+    check_range(fits)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / CAL_FILE
     tmp = path.with_suffix(".tmp")
     tmp.write_text(correction_text(fits))
     tmp.replace(path)
     return path
+
+
+def worst_rp_err(rows, chans, load_ohm: int) -> float:
+    return max(float(max(abs(v * 1000.0 / i / load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
+
+
+def store_on_device(d, fits: list[ChannelFit]) -> list:
+    """CMD_SET_VMON ... VMON_STORE per channel (the firmware writes its flash, then applies
+    it), then GET_INFO reads each back; SelfTestError if the device holds anything else."""
+    check_range(fits)
+    back = []
+    for f in fits:
+        d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True)
+        c = d.calibration(f.channel)
+        if (c.vmon_gain_ppm, c.vmon_offset_mv, c.vmon_state) != (f.gain_ppm, round(f.offset_mv), hp.VMON_STORED):
+            raise SelfTestError(f"ch{f.channel}: the device reads back {c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV "
+                                f"(state {c.vmon_state}) after storing {f.gain_ppm} ppm, {round(f.offset_mv)} mV")
+        back.append(c)
+    return back
+
+
+def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, say, open_transport) -> int:
+    """The whole self-test on one device URL; returns the exit code (0)."""
+    from .device import Device
+
+    sim = url.startswith("sim://")
+    with open_transport(url) as t:
+        d = Device(t)
+        info = d.info()
+        chans = list(range(info.n_channels)) if channel is None else [channel]
+        if any(c >= info.n_channels for c in chans):
+            raise SelfTestError(f"--channel {channel} out of range [0, {info.n_channels - 1}]")
+        pts = plan(load_ohm, info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us,
+                   info.q_max_pc, info.compliance_mv)
+        say(f"{url}: {len(pts)} test points x {pulses} pulses on {len(chans)} channel(s), {load_ohm} ohm load ...")
+        d.disarm()
+        old = {ch: d.calibration(ch) for ch in chans}
+        done = False
+        try:
+            for ch in chans:  # the raw monitor: the correction off in RAM only
+                d.set_vmon(ch, 0, 0)
+            rows = measure(d, pts, chans, pulses)
+            fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            for line in report_lines(fits, load_ohm):
+                say(line)
+            worst = max(f.worst_rp_err_before for f in fits)
+            if not store:
+                return 0
+            back = store_on_device(d, fits)
+            done = True
+            say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
+                f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back))
+            check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
+            if not sim:
+                rows = measure(d, check, chans, pulses)
+                say(f"with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
+                    f"(was {worst:.2%})")
+        finally:
+            if not done:  # put back what the device applied before (its flash was not touched)
+                with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
+                    d.disarm()
+                    for ch, c in old.items():
+                        d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv)
+    if save_dir is not None:
+        say(f"a copy on this computer: {save(fits, Path(save_dir))}")
+    if sim:  # a reset: the simulated board boots again and reads its flash
+        with open_transport(url) as t:
+            d = Device(t)
+            for ch in chans:
+                c = d.calibration(ch)
+                if c.vmon_state != hp.VMON_LOADED or c.vmon_gain_ppm != fits[chans.index(ch)].gain_ppm:
+                    raise SelfTestError(f"ch{ch}: after a reset the board did not load the stored correction "
+                                        f"(state {c.vmon_state}, {c.vmon_gain_ppm} ppm)")
+            rows = measure(d, check, chans, pulses)
+        say(f"after a reset, with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
+            f"(was {worst:.2%})")
+    return 0

@@ -75,3 +75,30 @@ def test_the_emulator_dying_is_disconnected_with_its_reason():
         with pytest.raises(Disconnected, match="the emulated Pico stopped"):
             while True:
                 t.read(1.0)
+
+
+@needs_emulator
+def test_selftest_on_the_emulated_pico_stores_the_correction_on_the_device_and_reads_it_back(capsys):
+    """The self-test over HID on the real firmware: the raw monitor measured (the correction off
+    in RAM), CMD_SET_VMON ... VMON_STORE written to the board's flash from the running loop, read
+    back with GET_INFO, the worst Rp error measured again with it (tests/chip/test_chip_vmon.py:
+    the stored file survives a reset)."""
+    assert main(["selftest", "--load-ohm", "10000", "--device", "emu://steady", "--pulses", "3"]) == 0
+    out = capsys.readouterr().out
+    back = re.search(r"read back: ch0 (\d+) ppm ([+-]\d+) mV, ch1 (\d+) ppm ([+-]\d+) mV", out)
+    assert back, out
+    for k in (0, 1):  # the emulated monitor is exact: a path gain of 1, the peak search's few counts of offset
+        row = next(ln for ln in out.splitlines() if ln.strip().startswith(f"{k} |"))
+        g = float(row.split("|")[2])
+        assert abs(g - 1) < 0.003
+        assert abs(int(back.group(1 + 2 * k)) / 1e6 - g) <= 0.00005  # what was stored is what was fitted
+        assert 0 < int(back.group(2 + 2 * k)) < 6 * 27 * 1.5
+    before = float(out.split("(was ")[1].split("%")[0])
+    after = float(out.split("with the stored correction: worst Rp error ")[1].split("%")[0])
+    assert after < before
+
+
+def test_emu_url_load_is_checked_in_one_line(capsys):
+    assert main(["info", "--device", "emu://steady?load=5"]) == 2
+    err = capsys.readouterr().err
+    assert "load=5 ohm out of range [100, 1000000]" in err and len(err.strip().splitlines()) == 1

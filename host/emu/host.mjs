@@ -327,6 +327,7 @@ class Chip {
       last: this.clock.nanos,
       noise: spec.noise_counts,
       random: rng(spec.seed),
+      load_ohm: spec.load_ohm || 0,
     };
   }
 
@@ -345,6 +346,10 @@ class Chip {
 
   /** A pulse starts on channel k: the electrode's Rp and tau for it become the channel's load. */
   electrodePulse(k, t, iUa) {
+    if (this.world.load_ohm) { // a resistor in place of the electrodes (emu://...?load=OHM, the self-test)
+      this.loads[k] = { rs_ohm: this.world.load_ohm, rp_ohm: 0, tau_us: 0 };
+      return;
+    }
     this.advanceScenario(t);
     const e = this.world.electrodes[k];
     if (e.pulse(iUa)) this.loads[k] = { rs_ohm: e.rs * 1000, rp_ohm: e.rp_skin * 1000, tau_us: e.tau };
