@@ -269,6 +269,11 @@ class Board:
         self.wait()
         return n
 
+    def set_dac_gain(self, ch, ppm):
+        """Channel ch's DAC delivers ppm / 1e6 x nominal (0: nominal; the self-test's
+        correction): set_amplitude() then returns the current delivered. Allocates nothing."""
+        self.dac.set_gain(ch, ppm)
+
     def store_vmon(self, values, path=VMON_PATH):
         """Write the monitor correction to the flash (CMD_SET_VMON ... VMON_STORE),
         read at the next boot. Allocates: the Stimulator calls it outside its

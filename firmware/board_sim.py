@@ -42,6 +42,7 @@ class AnalogPath:
     def __init__(self, cfg, n_channels, ideal=False, noise_counts=None):
         self.ideal = ideal
         self.fs_ua = cfg.AMP_UA_AT_FULL
+        self.fs_cal = [cfg.AMP_UA_AT_FULL] * n_channels  # per channel: full scale x the stored DAC gain
         self.uv = cfg.VMON_UV_PER_COUNT
         if ideal:
             self.noise = IDEAL_NOISE_COUNTS if noise_counts is None else noise_counts
@@ -61,17 +62,18 @@ class AnalogPath:
                     dnl[c] = s
             self.dnl = dnl
 
-    def code(self, i_ua):
+    def code(self, i_ua, ch=None):
         """The DAC code for a commanded current: the largest not above it (never more
-        current than commanded), clipped to the DAC's range."""
+        current than commanded), clipped to the DAC's range. ch: with that channel's
+        stored DAC gain (set_dac_gain), else nominal."""
         if i_ua <= 0:
             return 0
-        c = i_ua * DAC_CODES // self.fs_ua
+        c = i_ua * DAC_CODES // (self.fs_ua if ch is None else self.fs_cal[ch])
         return DAC_CODES - 1 if c >= DAC_CODES else c
 
-    def delivered_ua(self, code):
-        """What the firmware is told: code x LSB, whole uA (rounded down)."""
-        return code * self.fs_ua // DAC_CODES
+    def delivered_ua(self, code, ch=None):
+        """What the firmware is told: code x LSB (with channel ch's stored DAC gain), whole uA (rounded down)."""
+        return code * (self.fs_ua if ch is None else self.fs_cal[ch]) // DAC_CODES
 
     def physical_ua(self, ch, code):
         """The current the output stage really drives (float uA): code x LSB x gain error."""
@@ -297,9 +299,18 @@ class SimBoard:
             self.code[ch] = i_ua if i_ua > 0 else 0
             self.amp[ch] = self.code[ch]
             return self.amp[ch]
-        self.code[ch] = self.analog.code(i_ua)
-        self.amp[ch] = self.analog.delivered_ua(self.code[ch])
+        self.code[ch] = self.analog.code(i_ua, ch)
+        self.amp[ch] = self.analog.delivered_ua(self.code[ch], ch)
         return self.amp[ch]
+
+    def set_dac_gain(self, ch, ppm):
+        """The stored DAC gain of channel ch (ppm, 0: nominal), as dac_mcp4822.MCP4822.set_gain:
+        its full scale follows, so set_amplitude reports the current delivered. The ideal
+        board has no DAC: nothing changes."""
+        if not self.ideal:
+            fs = self.analog.fs_ua
+            d = ((ppm or 1000000) - 1000000) // 10
+            self.analog.fs_cal[ch] = fs + (fs * d + 50000) // 100000
 
     def stop(self, ch):
         self.set_amplitude(ch, 0)

@@ -119,7 +119,8 @@ class Channel:
         self.vmon_off = 0
         self.vmon_k = 0  # ... as vmon_cal.terms() for _measure (0: none)
         self.vmon_o = 0
-        self.vmon_stored = None  # (gain ppm, offset mV) the board's flash holds for this channel
+        self.vmon_dac = 0  # the amplitude DAC's gain applied (ppm; 0: nominal)
+        self.vmon_stored = None  # (gain ppm, offset mV, DAC gain ppm) the board's flash holds for this channel
 
 
 class Stimulator:
@@ -167,10 +168,12 @@ class Stimulator:
         # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
         vm = getattr(board, "vmon_cal", None)
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
+        self._dac_gain = hasattr(board, "set_dac_gain")  # the board scales its DAC's full scale
         for c in self.chans:
-            if vm and c.ch < len(vm) and vm[c.ch]:
-                c.vmon_stored = vm[c.ch]
-                self._vmon_apply(c, vm[c.ch][0], vm[c.ch][1])
+            v = vm[c.ch] if vm and c.ch < len(vm) else None
+            if v:
+                c.vmon_stored = v
+                self._vmon_apply(c, v[0], v[1], v[2] if len(v) > 2 else 0)
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -556,9 +559,12 @@ class Stimulator:
             f |= 4
         if c.vmon_k:
             f |= hp.CAL_FLAG_VMON
+        if c.vmon_dac:
+            f |= hp.CAL_FLAG_DAC
         b[hp.O_CAL_FLAGS] = f
         hp.put_i32(b, hp.O_CAL_VMON_GAIN, c.vmon_g)
         hp.put_i32(b, hp.O_CAL_VMON_OFF, c.vmon_off)
+        hp.put_i32(b, hp.O_CAL_DAC_GAIN, c.vmon_dac)
         b[hp.O_CAL_VMON_STATE] = self.vmon_state
         hp.put_u16(b, hp.O_CAL_I0, c.i0)
         hp.put_u16(b, hp.O_CAL_T0, c.t0)
@@ -759,8 +765,14 @@ class Stimulator:
         return self._ack(r, hp.RES_OK, 0)
 
     # ------------------------------------------------- the monitor correction
-    def _vmon_apply(self, c, gain_ppm, offset_mv):
-        """Channel c's monitor correction from now on (0, 0: none). Allocates nothing."""
+    def _vmon_apply(self, c, gain_ppm, offset_mv, dac_ppm):
+        """Channel c's monitor correction (0, 0: none) and DAC gain (0: nominal) from now on;
+        the output is set again before the next pulse (its current changes with the DAC's
+        full scale). Allocates nothing."""
+        c.vmon_dac = dac_ppm
+        if self._dac_gain:
+            self.board.set_dac_gain(c.ch, dac_ppm)
+        c.ai = 0  # _pre_pulse: no pulse until _output has set the amplitude with the new scale
         c.vmon_g = gain_ppm
         c.vmon_off = offset_mv
         if gain_ppm:
@@ -789,11 +801,16 @@ class Stimulator:
             return self._ack(r, hp.RES_BAD_FORMAT, hp.O_ARG + 1)
         g = hp.get_i32(r, hp.O_ARG + 4)
         off = hp.get_i32(r, hp.O_ARG + 8)
+        dac = hp.get_i32(r, hp.O_ARG + 12)
         if g or off:
             if not hp.VMON_GAIN_PPM_MIN <= g <= hp.VMON_GAIN_PPM_MAX:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
             if not hp.VMON_OFFSET_MV_MIN <= off <= hp.VMON_OFFSET_MV_MAX:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
+        if dac and not hp.VMON_GAIN_PPM_MIN <= dac <= hp.VMON_GAIN_PPM_MAX:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
+        if not self._dac_gain and dac:  # this board cannot scale its DAC: refused, nothing changes
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
         c = self.chans[ch]
         if op == hp.VMON_STORE:
             locked = self.locked
@@ -802,7 +819,7 @@ class Stimulator:
             try:
                 store = getattr(self.board, "store_vmon", None)
                 values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
-                values[ch] = (g, off) if g else None
+                values[ch] = (g, off, dac) if g or dac else None
                 ok = store is not None and store(values)
                 if ok:
                     c.vmon_stored = values[ch]
@@ -812,5 +829,5 @@ class Stimulator:
             if not ok:
                 return self._ack(r, hp.RES_STORE_FAILED, 0)
             self.vmon_state = hp.VMON_STORED
-        self._vmon_apply(c, g, off)
+        self._vmon_apply(c, g, off, dac)
         return self._ack(r, hp.RES_OK, 0)

@@ -20,8 +20,10 @@ ADC_MAX = 4095
 
 
 def parse(text, n_channels):
-    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV` per channel.
-    Returns [(gain_ppm, offset_mv) or None per channel]; ValueError names the line."""
+    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]`
+    per channel (GAIN_PPM 0 with OFFSET_MV 0: the monitor uncorrected; DAC_GAIN_PPM 0 or
+    absent: the DAC nominal). Returns [(gain_ppm, offset_mv, dac_gain_ppm) or None per
+    channel]; ValueError names the line."""
     lines = text.splitlines()
     if not lines or lines[0].strip() != CAL_HEADER:
         raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
@@ -32,15 +34,30 @@ def parse(text, n_channels):
             continue
         parts = ln.split()
         try:
+            if not 3 <= len(parts) <= 4:
+                raise ValueError
             ch, g, off = int(parts[0]), int(parts[1]), int(parts[2])
-        except (ValueError, IndexError):
-            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV" % (k + 1))
-        if not (CAL_GAIN_PPM[0] <= g <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= off <= CAL_OFFSET_MV[1]):
-            raise ValueError("correction file line %d: gain %d ppm or offset %d mV out of range [%d, %d] / [%d, %d]"
-                             % (k + 1, g, off, CAL_GAIN_PPM[0], CAL_GAIN_PPM[1], CAL_OFFSET_MV[0], CAL_OFFSET_MV[1]))
-        if 0 <= ch < n_channels:
-            out[ch] = (g, off)
+            dac = int(parts[3]) if len(parts) == 4 else 0
+        except ValueError:
+            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]" % (k + 1))
+        if not ok(g, off, dac):
+            raise ValueError("correction file line %d: gain %d ppm, offset %d mV or DAC gain %d ppm out of range "
+                             "[%d, %d] / [%d, %d] / [%d, %d] (or 0)" % (k + 1, g, off, dac, CAL_GAIN_PPM[0],
+                                                                        CAL_GAIN_PPM[1], CAL_OFFSET_MV[0],
+                                                                        CAL_OFFSET_MV[1], CAL_GAIN_PPM[0],
+                                                                        CAL_GAIN_PPM[1]))
+        if 0 <= ch < n_channels and (g or dac):
+            out[ch] = (g, off, dac)
     return out
+
+
+def ok(gain_ppm, offset_mv, dac_gain_ppm):
+    """What CMD_SET_VMON and the file accept: the monitor's gain and offset in range, or both 0
+    (uncorrected); the DAC's gain in range or 0 (nominal)."""
+    if gain_ppm or offset_mv:
+        if not (CAL_GAIN_PPM[0] <= gain_ppm <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= offset_mv <= CAL_OFFSET_MV[1]):
+            return False
+    return dac_gain_ppm == 0 or CAL_GAIN_PPM[0] <= dac_gain_ppm <= CAL_GAIN_PPM[1]
 
 
 def load(path, n_channels):
@@ -69,11 +86,13 @@ def boot_load(path, n_channels):
 
 
 def text(values):
-    """The file's text for values [(gain_ppm, offset_mv) or None per channel]."""
-    out = CAL_HEADER + "\n# CH GAIN_PPM OFFSET_MV: measured mV = gain x true mV + offset (steadytouch selftest)\n"
+    """The file's text for values [(gain_ppm, offset_mv, dac_gain_ppm) or None per channel]."""
+    out = CAL_HEADER + ("\n# CH GAIN_PPM OFFSET_MV DAC_GAIN_PPM: measured mV = gain x true mV + offset; "
+                        "delivered uA = DAC gain x nominal uA (steadytouch selftest)\n")
     for ch in range(len(values)):
-        if values[ch]:
-            out += "%d %d %d\n" % (ch, values[ch][0], values[ch][1])
+        v = values[ch]
+        if v:
+            out += "%d %d %d %d\n" % (ch, v[0], v[1], v[2] if len(v) > 2 else 0)
     return out
 
 

@@ -720,7 +720,7 @@ def cmd_selftest(a) -> int:
     url = a.device
     if url.startswith(("sim://", "emu://")) and "load=" not in url:  # the simulated resistor in place of the electrodes
         url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
-    return st.run(url, a.load_ohm, a.channel, a.pulses, not a.no_store, a.save_dir, say, open_transport)
+    return st.run(url, a.load_ohm, a.channel, a.pulses, not a.no_store, a.save_dir, say, open_transport, a.scope)
 
 
 # ------------------------------------------------------------ parser
@@ -898,6 +898,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--channel", type=int, default=None, help="one channel (default: all)")
     s.add_argument("--pulses", type=int, default=8, help="pulses per test point (default 8)")
     s.add_argument("--no-store", action="store_true", help="report only")
+    s.add_argument("--scope", action="store_true", help="also the DAC's own gain: each channel pulses 4500 uA x "
+                   "1000 us on the load and asks for the plateau a scope reads across it (mV, on stdin)")
     s.add_argument("--save-dir", default=None, help="also keep a copy of vmon_cal.txt in this folder "
                    "(the device stores its own in its flash)")
 

@@ -154,6 +154,7 @@ class CalInfo:
     vmon_gain_ppm: int = 0  # the monitor correction applied to this channel (0: none)
     vmon_offset_mv: int = 0
     vmon_state: int = hp.VMON_NONE
+    dac_gain_ppm: int = 0  # the amplitude DAC's gain applied (0: nominal)
 
     @property
     def ok(self) -> bool:
@@ -218,7 +219,9 @@ def _check_info(i: Info):
 def _check_cal(c: CalInfo):
     _need(c.result in RESULT_WORDS, "result", c.result, f"0..{max(RESULT_WORDS)}")
     _need(c.channel <= 3, "channel", c.channel, "0..3")
-    _need(c.flags <= 15, "flags", f"0x{c.flags:x}", "bits of 0xf")
+    _need(c.flags <= 31, "flags", f"0x{c.flags:x}", "bits of 0x1f")
+    _need(c.dac_gain_ppm == 0 or hp.VMON_GAIN_PPM_MIN <= c.dac_gain_ppm <= hp.VMON_GAIN_PPM_MAX, "dac_gain_ppm",
+          c.dac_gain_ppm, f"0 or {hp.VMON_GAIN_PPM_MIN}..{hp.VMON_GAIN_PPM_MAX}")
     _need(c.vmon_gain_ppm == 0 and c.vmon_offset_mv == 0 or (
         hp.VMON_GAIN_PPM_MIN <= c.vmon_gain_ppm <= hp.VMON_GAIN_PPM_MAX
         and hp.VMON_OFFSET_MV_MIN <= c.vmon_offset_mv <= hp.VMON_OFFSET_MV_MAX), "vmon",
@@ -289,7 +292,7 @@ def decode(report: bytes):
         vg, vo = struct.unpack_from("<ii", report, hp.O_CAL_VMON_GAIN)
         c = CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
                     report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE], vg, vo,
-                    report[hp.O_CAL_VMON_STATE])
+                    report[hp.O_CAL_VMON_STATE], struct.unpack_from("<i", report, hp.O_CAL_DAC_GAIN)[0])
         _check_cal(c)
         return c
     raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")
@@ -491,9 +494,10 @@ class Commands:
                 self._fits(rate_hz, self.frame[2], "rate")
         return bytes(hp.cmd_set_mode(bytearray(64), mode & 0xFF, rate_hz & 0xFF, self._next()))
 
-    def set_vmon(self, ch, gain_ppm, offset_mv, store=False) -> bytes:
-        """Channel ch's voltage-monitor correction (steadytouch selftest); (0, 0): none.
-        store: also written to the board's flash (read at every boot)."""
+    def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0) -> bytes:
+        """Channel ch's voltage-monitor correction (steadytouch selftest); (0, 0): none;
+        dac_gain_ppm: its amplitude DAC's gain (0: nominal). store: also written to the
+        board's flash (read at every boot)."""
         ch = self._ch(ch)
         if self.check:
             if ch == hp.CH_ALL:
@@ -502,8 +506,11 @@ class Commands:
             if gain_ppm or offset_mv:
                 gain_ppm = _in("gain_ppm", gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
                 offset_mv = _in("offset_mv", offset_mv, hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX, "mV")
+            dac_gain_ppm = _whole("dac_gain_ppm", dac_gain_ppm)
+            if dac_gain_ppm:
+                dac_gain_ppm = _in("dac_gain_ppm", dac_gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
         op = hp.VMON_STORE if store else hp.VMON_APPLY
-        return bytes(hp.cmd_set_vmon(bytearray(64), ch, op, gain_ppm, offset_mv, self._next()))
+        return bytes(hp.cmd_set_vmon(bytearray(64), ch, op, gain_ppm, offset_mv, self._next(), dac_gain_ppm))
 
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS) -> bytes:
         """The host is alive; the device stops every channel if silent for timeout_ms (it cannot be switched off)."""

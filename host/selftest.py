@@ -13,18 +13,24 @@ measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
 interrupted self-test leaves the stored correction as it was (it returns at the
 next reset; the self-test also puts the old one back when it stops).
 
-What a resistor can and cannot tell (docs/simulation.md, "Self-test"): the
-measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor sees
-the DAC's gain and the monitor's gain only as their product G ("path gain").
-Correcting the monitor by G makes Rp = Vp / I exact, which is what the
-controller measures against; the DAC's own share, the error of the charge
-actually delivered, needs a second reference (a scope across the load).
+What a resistor can and cannot tell (docs/hardware.md, "First-run self-test"):
+the measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor
+sees the DAC's gain and the monitor's gain only as their product G ("path
+gain"). Correcting the monitor by G makes Rp = Vp / I exact, which is what the
+controller measures against. The DAC's own share (the charge actually
+delivered, and the hard current limit counted on the delivered current) needs an
+independent reference: with --scope the builder reads the plateau of a
+reference pulse across the load on a scope, V = g_dac x I_nominal x R, which
+gives g_dac; the monitor is then corrected by G / g_dac and the board scales its
+DAC's full scale by g_dac, so the current it reports is the one delivered.
 Units: uA, us, mV, ohm; gains in ppm in the stored file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,14 +64,21 @@ class ChannelFit:
     worst_rp_err_after: float  # ... with the correction applied
     worst_point_err_after: float  # largest |mean Rp of a test point - R| / R, corrected (noise averaged)
     rows: list = field(default_factory=list, repr=False)
+    dac_gain: float = 0.0  # delivered / nominal current, from a scope reading (0: not measured)
 
     @property
     def gain_ppm(self) -> int:
-        return round(self.gain * 1e6)
+        """The monitor's gain to store: the path gain, or its share once the DAC's is known."""
+        return round(self.gain / (self.dac_gain or 1.0) * 1e6)
+
+    @property
+    def dac_gain_ppm(self) -> int:
+        return round(self.dac_gain * 1e6)
 
     def in_range(self) -> bool:
         return (GAIN_PPM_RANGE[0] <= self.gain_ppm <= GAIN_PPM_RANGE[1]
-                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1])
+                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1]
+                and (not self.dac_gain or GAIN_PPM_RANGE[0] <= self.dac_gain_ppm <= GAIN_PPM_RANGE[1]))
 
 
 def plan(load_ohm: int, i_min_ua: int, i_max_ua: int, t_min_us: int, t_max_us: int, q_max_pc: int,
@@ -101,8 +114,9 @@ def fit_channel(ch: int, rows, load_ohm: float) -> ChannelFit:
 
 
 def correction_text(fits: list[ChannelFit]) -> str:
-    lines = [CAL_HEADER, "# CH GAIN_PPM OFFSET_MV: measured mV = gain x true mV + offset (steadytouch selftest)"]
-    lines += [f"{f.channel} {f.gain_ppm} {round(f.offset_mv)}" for f in fits]
+    lines = [CAL_HEADER, "# CH GAIN_PPM OFFSET_MV DAC_GAIN_PPM: measured mV = gain x true mV + offset; "
+             "delivered uA = DAC gain x nominal uA (steadytouch selftest)"]
+    lines += [f"{f.channel} {f.gain_ppm} {round(f.offset_mv)} {f.dac_gain_ppm}" for f in fits]
     return "\n".join(lines) + "\n"
 
 
@@ -147,6 +161,10 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
                    f"{f.worst_rp_err_before:7.2%} -> {f.worst_rp_err_after:.2%} ({f.worst_point_err_after:.2%})")
     out.append("G = DAC gain x monitor gain (one resistor sees only their product; correcting the monitor by G "
                "makes Rp = Vp/I exact)")
+    for f in fits:
+        if f.dac_gain:
+            out.append(f"ch{f.channel}: against the scope the DAC delivers {f.dac_gain:.4f} x nominal; the monitor's "
+                       f"own gain is {f.gain_ppm / 1e6:.4f}")
     return out
 
 
@@ -181,16 +199,84 @@ def store_on_device(d, fits: list[ChannelFit]) -> list:
     check_range(fits)
     back = []
     for f in fits:
-        d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True)
+        d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True, dac_gain_ppm=f.dac_gain_ppm)
         c = d.calibration(f.channel)
         if (c.vmon_gain_ppm, c.vmon_offset_mv, c.vmon_state) != (f.gain_ppm, round(f.offset_mv), hp.VMON_STORED):
             raise SelfTestError(f"ch{f.channel}: the device reads back {c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV "
                                 f"(state {c.vmon_state}) after storing {f.gain_ppm} ppm, {round(f.offset_mv)} mV")
+        if c.dac_gain_ppm != f.dac_gain_ppm:
+            raise SelfTestError(f"ch{f.channel}: the device reads back a DAC gain of {c.dac_gain_ppm} ppm after "
+                                f"storing {f.dac_gain_ppm} ppm")
         back.append(c)
     return back
 
 
-def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, say, open_transport) -> int:
+SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
+
+
+def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600.0) -> float:
+    """Pulse channel ch alone at the reference (I, T), open loop, DAC and monitor nominal
+    (the caller switched the correction off), until ask(prompt) returns the builder's
+    scope reading of the pulse's plateau across the load (mV); the DAC's gain from it."""
+    import threading
+
+    from .protocol import Telemetry
+
+    i_ua, t_us = pulse
+    d.disarm()
+    d.calibrate(i_ua, t_us, 0, 0)
+    got: dict = {}
+    nominal = 0
+    with d.live(arm=ch):
+        while not nominal:  # the current the DAC's code stands for (what the firmware reports)
+            rep = d.read(2.0)
+            if rep is None:
+                raise SelfTestError(f"ch{ch}: no pulse at {i_ua} uA, {t_us} us: is the device running?")
+            # this pulse's (not a report of the sweep still queued): the DAC's step below the command
+            if isinstance(rep, Telemetry) and rep.channel == ch and rep.t_us == t_us and 0 < i_ua - rep.i_ua < 5:
+                nominal = rep.i_ua
+        prompt = (f"ch{ch} pulses {nominal} uA x {t_us} us on the {load_ohm} ohm load now: the plateau across the "
+                  f"load on the scope, in mV (nominal {nominal * load_ohm / 1000:.0f}): ")
+        def reader():
+            try:
+                got["text"] = ask(prompt)
+            except Exception as e:  # noqa: BLE001 - reported below, in the main thread
+                got["error"] = e
+
+        th = threading.Thread(target=reader, daemon=True)
+        th.start()
+        end = time.monotonic() + timeout_s
+        while th.is_alive():  # the device's keep-alive goes on while the builder reads the scope
+            if time.monotonic() > end:
+                raise SelfTestError(f"ch{ch}: no scope reading within {timeout_s:g} s")
+            rep = d.read(0.2)
+            if isinstance(rep, Telemetry) and rep.channel == ch and rep.stop not in (hp.STOP_NONE,):
+                raise SelfTestError(f"ch{ch} stopped while waiting for the scope (stop reason {rep.stop})")
+    if "error" in got:
+        raise got["error"]
+    if got.get("text") is None:
+        raise SelfTestError("--scope: no reading on stdin (it is closed)")
+    text = got["text"].strip()
+    try:
+        mv = float(text)
+    except ValueError:
+        raise SelfTestError(f"ch{ch}: scope reading {text!r} is not a number of mV") from None
+    g = mv * 1000.0 / (nominal * load_ohm)
+    if not (GAIN_PPM_RANGE[0] <= round(g * 1e6) <= GAIN_PPM_RANGE[1]):
+        raise SelfTestError(f"ch{ch}: {mv:g} mV on {load_ohm} ohm at {nominal} uA is a DAC gain of {g:.4f}, out of "
+                            f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}]: check the probe, "
+                            "its scale and the load; nothing was stored")
+    return g
+
+
+def _ask_stdin(prompt: str) -> str:
+    print(prompt, end="", flush=True)
+    line = sys.stdin.readline()
+    return line or None  # None: stdin closed
+
+
+def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, say, open_transport,
+        scope: bool = False, ask=_ask_stdin) -> int:
     """The whole self-test on one device URL; returns the exit code (0)."""
     from .device import Device
 
@@ -212,6 +298,9 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 d.set_vmon(ch, 0, 0)
             rows = measure(d, pts, chans, pulses)
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            if scope:
+                for f in fits:
+                    f.dac_gain = scope_dac_gain(d, f.channel, load_ohm, SCOPE_PULSE, ask)
             for line in report_lines(fits, load_ohm):
                 say(line)
             worst = max(f.worst_rp_err_before for f in fits)
@@ -220,7 +309,8 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             back = store_on_device(d, fits)
             done = True
             say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
-                f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back))
+                f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
+                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
             check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
             if not sim:
                 rows = measure(d, check, chans, pulses)
@@ -231,7 +321,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
                     d.disarm()
                     for ch, c in old.items():
-                        d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv)
+                        d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv, dac_gain_ppm=c.dac_gain_ppm)
     if save_dir is not None:
         say(f"a copy on this computer: {save(fits, Path(save_dir))}")
     if sim:  # a reset: the simulated board boots again and reads its flash
@@ -239,7 +329,8 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             d = Device(t)
             for ch in chans:
                 c = d.calibration(ch)
-                if c.vmon_state != hp.VMON_LOADED or c.vmon_gain_ppm != fits[chans.index(ch)].gain_ppm:
+                f = fits[chans.index(ch)]
+                if c.vmon_state != hp.VMON_LOADED or (c.vmon_gain_ppm, c.dac_gain_ppm) != (f.gain_ppm, f.dac_gain_ppm):
                     raise SelfTestError(f"ch{ch}: after a reset the board did not load the stored correction "
                                         f"(state {c.vmon_state}, {c.vmon_gain_ppm} ppm)")
             rows = measure(d, check, chans, pulses)

@@ -140,7 +140,10 @@ RES_STORE_FAILED = const(9)  # SET_VMON: the board could not write its flash (no
 # RAM until the next reset: the self-test measures the raw monitor with 0, 0)
 # or VMON_STORE (written to the board's flash first, then applied; read at
 # every boot); O_ARG + 4 i32 gain in ppm, O_ARG + 8 i32 offset in mV; gain 0
-# and offset 0 = uncorrected. Refused while any channel is armed (a flash write
+# and offset 0 = uncorrected; O_ARG + 12 i32 the amplitude DAC's gain in ppm
+# (delivered / nominal current, found against a scope; 0 = nominal): the board
+# scales the DAC's full scale by it, so the current it reports, the Rp and the
+# hard limits count the current delivered. Refused while any channel is armed (a flash write
 # stalls the loop for tens of ms) with RES_BAD_STATE, outside the ranges with
 # RES_OUT_OF_RANGE, a failed flash write with RES_STORE_FAILED: nothing changes.
 VMON_APPLY = const(0)
@@ -213,7 +216,8 @@ BOARD_LEN = const(16)
 O_INFO_VMON = const(60)  # u8 VMON_NONE / LOADED / BAD / STORED
 # calibration report (REP_CAL)
 O_CAL_CH = const(12)
-O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected
+O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected,
+# 0x10 DAC gain corrected
 O_CAL_I0 = const(14)
 O_CAL_T0 = const(16)
 O_CAL_X = const(20)
@@ -223,7 +227,9 @@ O_CAL_MODE = const(32)
 O_CAL_VMON_GAIN = const(36)  # i32 ppm applied to this channel's monitor (0: uncorrected)
 O_CAL_VMON_OFF = const(40)  # i32 mV
 O_CAL_VMON_STATE = const(44)  # u8, as O_INFO_VMON
+O_CAL_DAC_GAIN = const(48)  # i32 ppm applied to this channel's amplitude DAC (0: nominal)
 CAL_FLAG_VMON = const(0x08)
+CAL_FLAG_DAC = const(0x10)
 # OUT
 O_OUT_CMD = const(0)
 O_OUT_TAG = const(1)
@@ -372,11 +378,12 @@ def cmd_set_skin(b, ch, rs_ohm, beta_q16, cp_pf, tag=0):
     return b
 
 
-def cmd_set_vmon(b, ch, op, gain_ppm, offset_mv, tag=0):
+def cmd_set_vmon(b, ch, op, gain_ppm, offset_mv, tag=0, dac_gain_ppm=0):
     _cmd(b, CMD_SET_VMON, ch, tag)
     b[O_ARG] = op
     put_i32(b, O_ARG + 4, gain_ppm)
     put_i32(b, O_ARG + 8, offset_mv)
+    put_i32(b, O_ARG + 12, dac_gain_ppm)
     seal(b)
     return b
 

@@ -154,7 +154,7 @@ result(state0=state0, state1=state1, r=[r1, r2], raw=raw, after_reset=rps(s2), s
     r = res[0]
     assert r["state0"] == hp.VMON_NONE and r["state1"] == hp.VMON_STORED and r["state2"] == hp.VMON_LOADED
     assert r["r"] == [hp.RES_OK, hp.RES_OK]
-    assert vmon_cal.parse(r["text"], 2) == [corr, None]
+    assert vmon_cal.parse(r["text"], 2) == [corr + (0,), None]
     assert abs(r["after_reset"][0] - 10000) <= 20 and r["after_reset"][1] == r["raw"][1]
     assert not (tmp_path / "vmon_cal.txt.tmp").exists()
     for bad in ("garbage\n", vmon_cal.CAL_HEADER + "\n0 5000000 0\n", vmon_cal.CAL_HEADER + "\n0 1000000\n",
@@ -170,8 +170,10 @@ result(state=s.vmon_state, rp=rps(s))
 def test_boot_load_and_store_on_cpython(tmp_path):
     p = str(tmp_path / "vmon_cal.txt")
     assert vmon_cal.boot_load(p, 2) == ([None, None], hp.VMON_NONE)
-    assert vmon_cal.store(p, [None, (1010000, -40)])
-    assert vmon_cal.boot_load(p, 2) == ([None, (1010000, -40)], hp.VMON_LOADED)
+    assert vmon_cal.store(p, [None, (1010000, -40, 994000)])
+    assert vmon_cal.boot_load(p, 2) == ([None, (1010000, -40, 994000)], hp.VMON_LOADED)
+    (tmp_path / "old.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -40\n")  # a file without the DAC column
+    assert vmon_cal.boot_load(str(tmp_path / "old.txt"), 2) == ([None, (1010000, -40, 0)], hp.VMON_LOADED)
     assert vmon_cal.boot_load(p, 1) == ([None], hp.VMON_LOADED)  # a channel the board does not have: ignored
     assert not vmon_cal.store(str(tmp_path / "no" / "dir.txt"), [None])
 
@@ -185,3 +187,47 @@ def test_host_command_checks_the_same_ranges():
         with pytest.raises(CommandError, match=words):
             c.set_vmon(*args)
     assert isinstance(Ack, type) and isinstance(Telemetry, type)
+
+
+def test_the_dac_gain_makes_the_reported_current_the_delivered_one():
+    """With the DAC's gain stored the board scales its full scale: the current the firmware
+    reports (and counts against the hard limits) is the physical one within a DAC step, and
+    the monitor's own gain then makes Rp exact."""
+    corr = [(round(board_sim.MON_GAIN[k] * 1e6), board_sim.MON_OFFSET_MV[k], round(board_sim.DAC_GAIN[k] * 1e6))
+            for k in (0, 1)]
+    _, res, _ = run_fw(PULSES + f"""
+s = board({corr!r})
+rp = rps(s)
+b = s.board
+out = []
+for ch in (0, 1):
+    got = b.set_amplitude(ch, 3000)
+    out.append([got, b.analog.physical_ua(ch, b.code[ch])])
+r = locked(s, hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 0, 0, 0, 1100001))
+result(rp=rp, out=out, r=[r, s.tx[hp.O_DETAIL]], dac=s.chans[0].vmon_dac)
+""")
+    r = res[0]
+    for ch in (0, 1):
+        got, phys = r["out"][ch]
+        assert 0 <= phys - got < 1.0 + 10000 / 4096 * 0.001, (ch, got, phys)  # whole uA, rounded down
+        assert abs(r["rp"][ch] - 10000) <= 20
+    assert r["r"] == [hp.RES_OUT_OF_RANGE, hp.O_ARG + 12] and r["dac"] == corr[0][2]  # refused: unchanged
+
+
+def test_dac_set_gain_scales_the_full_scale_within_small_ints():
+    import dac_mcp4822 as dac
+
+    class Bus:
+        def write(self, b):
+            pass
+
+    d = dac.MCP4822(Bus(), [lambda v=None: None], 2, dac.FULL_UA_MAX)
+    for ppm in (dac.GAIN_PPM_MIN, 999990, 1000000, 1000010, dac.GAIN_PPM_MAX):
+        d.set_gain(1, ppm)
+        assert abs(d.full[1] - dac.FULL_UA_MAX * ppm / 1e6) <= 1
+        assert abs(dac.FULL_UA_MAX * ((ppm - 1000000) // 10)) + 50000 < 2**30
+        assert 4096 * d.full[1] < 2**30
+    d.set_gain(1, 0)
+    assert d.full == [dac.FULL_UA_MAX] * 2
+    with pytest.raises(ValueError):
+        d.set_gain(0, 1100001)
