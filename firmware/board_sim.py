@@ -21,9 +21,9 @@ MAGIC1 = 0x5A
 ADC_MAX = 4095
 
 # ---- the realistic board's analog errors (docs/simulation.md, "The realistic board") ----
-DAC_CODES = 4096  # 12-bit amplitude DAC (e.g. MCP4728), full scale = cfg.AMP_UA_AT_FULL
-DAC_SETTLE_US = 6.0  # MCP4728 datasheet: settling time 6 us (to +-0.5 LSB)
-DAC_TAU_US = 6.0 / 9.01  # first-order: 0.5 LSB of 12 bits = e^-9.01 after DAC_SETTLE_US
+DAC_CODES = 4096  # 12-bit amplitude DAC (the board's MCP4822), full scale = cfg.AMP_UA_AT_FULL
+DAC_SETTLE_US = 4.5  # MCP4822 data sheet DS22249A: 4.5 us typ. to 1/2 LSB (docs/hardware.md [S1])
+DAC_TAU_US = 4.5 / 9.01  # first-order: 0.5 LSB of 12 bits = e^-9.01 after DAC_SETTLE_US
 DAC_GAIN = (0.9940, 1.0060, 0.9970, 1.0040)  # per channel: DAC + stimulator transconductance
 ADC_NOISE_COUNTS = 2.84  # 8.7 ENOB (RP2040 datasheet): 2**(12 - 8.7) / sqrt(12) LSB rms
 ADC_DNL_CODES = (512, 1536, 2560, 3584)  # erratum RP2040-E11
