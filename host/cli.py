@@ -20,7 +20,7 @@ import sensation_core as sc
 from . import __version__
 from .device import Device, DeviceError
 from .files import FileProblem, Outputs, dump_json
-from .protocol import STOP_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
+from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
@@ -164,6 +164,10 @@ def cmd_info(a) -> int:
                     + (" (armed)" if c.flags & 2 else ""))
             else:
                 say(f"  ch{ch}: not calibrated")
+            if c.vmon_gain_ppm or c.dac_gain_ppm:  # steadytouch selftest's correction
+                say(f"  ch{ch}: monitor gain {c.vmon_gain_ppm / 1e6:.4f} offset {c.vmon_offset_mv:+d} mV, "
+                    f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}")
+        say(f"  correction: {VMON_STATE_WORDS.get(i.vmon_state, i.vmon_state)}")
     return 0
 
 

@@ -231,3 +231,20 @@ def test_dac_set_gain_scales_the_full_scale_within_small_ints():
     assert d.full == [dac.FULL_UA_MAX] * 2
     with pytest.raises(ValueError):
         d.set_gain(0, 1100001)
+
+
+def test_info_shows_the_stored_correction_and_a_corrupt_file(tmp_path):
+    import os
+    import subprocess
+    from pathlib import Path
+
+    exe = str(Path(sys.executable).parent / "steadytouch")
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -30 995000\n")
+    p = subprocess.run([exe, "info", "--device", "sim://steady"], capture_output=True, text=True, env=env, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert "ch1: monitor gain 1.0100 offset -30 mV, DAC gain 0.9950" in p.stdout and "ch0: monitor" not in p.stdout
+    assert "correction: stored correction loaded at boot" in p.stdout
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -30 995\n")  # DAC gain out of range
+    p = subprocess.run([exe, "info", "--device", "sim://steady"], capture_output=True, text=True, env=env, timeout=60)
+    assert p.returncode == 0 and "monitor gain" not in p.stdout and "ignored (monitor uncorrected)" in p.stdout
