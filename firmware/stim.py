@@ -21,7 +21,6 @@ import struct
 
 import sensation_core as sc
 import hid_protocol as hp
-import vmon_cal
 
 try:
     import micropython
