@@ -16,6 +16,7 @@ from micropython import const
 import dac_mcp4822
 import hid_protocol as hp
 import pio_gate
+import vmon_cal
 
 _ADC_CS = const(0x4004C000)
 _ADC_FCS = const(0x4004C008)
@@ -36,6 +37,16 @@ _PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
 _SET_PINS_0 = rp2.asm_pio_encode("set(pins, 0)", 0)
 _WDT_CTRL = const(0x40058000)  # RP2040 datasheet 4.7.7: CTRL.ENABLE (bit 30) pauses the count when clear
 _WDT_ENABLE = const(0x40000000)
+
+
+VMON_PATH = "/" + vmon_cal.CAL_FILE  # the monitor correction in the board's flash (steadytouch selftest)
+
+
+def load_vmon(n, path=VMON_PATH):
+    """The monitor correction stored in the flash, read once at boot: ([(gain_ppm,
+    offset_mv) or None per channel], hp.VMON_NONE / LOADED / BAD). A missing or
+    corrupt file leaves every monitor uncorrected; it never stops the boot."""
+    return vmon_cal.boot_load(path, n)
 
 
 def watchdog_pause():
@@ -128,6 +139,7 @@ class Board:
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.hard_t = cfg.HARD_T_MAX_US
         self.capturing = -1  # the channel whose pulse start() began and wait() has not ended
+        self.vmon_cal, self.vmon_state = load_vmon(n)  # stim.Stimulator applies it (stim._measure)
         self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
         self.usb = self._usb()
         # last, once everything above worked: a failed set-up must not turn into a reset loop
@@ -256,6 +268,18 @@ class Board:
         n = self.start(ch, t_us)
         self.wait()
         return n
+
+    def set_dac_gain(self, ch, ppm):
+        """Channel ch's DAC delivers ppm / 1e6 x nominal (0: nominal; the self-test's
+        correction): set_amplitude() then returns the current delivered. Allocates nothing."""
+        self.dac.set_gain(ch, ppm)
+
+    def store_vmon(self, values, path=VMON_PATH):
+        """Write the monitor correction to the flash (CMD_SET_VMON ... VMON_STORE),
+        read at the next boot. Allocates: the Stimulator calls it outside its
+        heap-locked section, only while every channel is disarmed (the flash write
+        stalls the loop). True if written."""
+        return vmon_cal.store(path, values)
 
     def send(self, buf):
         if self.usb is not None:

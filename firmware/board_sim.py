@@ -21,9 +21,9 @@ MAGIC1 = 0x5A
 ADC_MAX = 4095
 
 # ---- the realistic board's analog errors (docs/simulation.md, "The realistic board") ----
-DAC_CODES = 4096  # 12-bit amplitude DAC (e.g. MCP4728), full scale = cfg.AMP_UA_AT_FULL
-DAC_SETTLE_US = 6.0  # MCP4728 datasheet: settling time 6 us (to +-0.5 LSB)
-DAC_TAU_US = 6.0 / 9.01  # first-order: 0.5 LSB of 12 bits = e^-9.01 after DAC_SETTLE_US
+DAC_CODES = 4096  # 12-bit amplitude DAC (the board's MCP4822), full scale = cfg.AMP_UA_AT_FULL
+DAC_SETTLE_US = 4.5  # MCP4822 data sheet DS22249A: 4.5 us typ. to 1/2 LSB (docs/hardware.md [S1])
+DAC_TAU_US = 4.5 / 9.01  # first-order: 0.5 LSB of 12 bits = e^-9.01 after DAC_SETTLE_US
 DAC_GAIN = (0.9940, 1.0060, 0.9970, 1.0040)  # per channel: DAC + stimulator transconductance
 ADC_NOISE_COUNTS = 2.84  # 8.7 ENOB (RP2040 datasheet): 2**(12 - 8.7) / sqrt(12) LSB rms
 ADC_DNL_CODES = (512, 1536, 2560, 3584)  # erratum RP2040-E11
@@ -42,6 +42,7 @@ class AnalogPath:
     def __init__(self, cfg, n_channels, ideal=False, noise_counts=None):
         self.ideal = ideal
         self.fs_ua = cfg.AMP_UA_AT_FULL
+        self.fs_cal = [cfg.AMP_UA_AT_FULL] * n_channels  # per channel: full scale x the stored DAC gain
         self.uv = cfg.VMON_UV_PER_COUNT
         if ideal:
             self.noise = IDEAL_NOISE_COUNTS if noise_counts is None else noise_counts
@@ -61,17 +62,18 @@ class AnalogPath:
                     dnl[c] = s
             self.dnl = dnl
 
-    def code(self, i_ua):
+    def code(self, i_ua, ch=None):
         """The DAC code for a commanded current: the largest not above it (never more
-        current than commanded), clipped to the DAC's range."""
+        current than commanded), clipped to the DAC's range. ch: with that channel's
+        stored DAC gain (set_dac_gain), else nominal."""
         if i_ua <= 0:
             return 0
-        c = i_ua * DAC_CODES // self.fs_ua
+        c = i_ua * DAC_CODES // (self.fs_ua if ch is None else self.fs_cal[ch])
         return DAC_CODES - 1 if c >= DAC_CODES else c
 
-    def delivered_ua(self, code):
-        """What the firmware is told: code x LSB, whole uA (rounded down)."""
-        return code * self.fs_ua // DAC_CODES
+    def delivered_ua(self, code, ch=None):
+        """What the firmware is told: code x LSB (with channel ch's stored DAC gain), whole uA (rounded down)."""
+        return code * (self.fs_ua if ch is None else self.fs_cal[ch]) // DAC_CODES
 
     def physical_ua(self, ch, code):
         """The current the output stage really drives (float uA): code x LSB x gain error."""
@@ -198,10 +200,11 @@ class StdioUSB:
 
 
 # the monitor correction (steadytouch selftest) is the device's own code: vmon_cal
+import vmon_cal
 from vmon_cal import CAL_GAIN_PPM, CAL_HEADER, CAL_OFFSET_MV  # noqa: F401 (names for the host and tests)
 from vmon_cal import correct as correct_count  # noqa: F401
 from vmon_cal import parse as parse_correction  # noqa: F401
-from vmon_cal import terms as correction_terms
+from vmon_cal import terms as correction_terms  # noqa: F401
 
 
 class SimBoard:
@@ -210,10 +213,13 @@ class SimBoard:
     ideal: False (default) the realistic analog path (AnalogPath); True the ideal one.
     load_ohm: a resistor on every channel instead of the electrodes (self-test).
     correction: [(gain_ppm, offset_mv) or None per channel], the monitor correction
-    the board applies to every ADC sample (from `steadytouch selftest`)."""
+    handed to the firmware at boot (stim._measure applies it to each pulse's peak);
+    flash_dir: the board's flash folder instead, as the rp2 board reads /vmon_cal.txt
+    (a missing or corrupt file: uncorrected, vmon_state says which) and where
+    store_vmon() writes it (CMD_SET_VMON ... VMON_STORE)."""
 
     def __init__(self, cfg, clock, scenario, n_channels=2, seed=1, usb=None, electrodes=None,
-                 noise_counts=None, ideal=False, load_ohm=0, correction=None):
+                 noise_counts=None, ideal=False, load_ohm=0, correction=None, flash_dir=None):
         self.cfg = cfg
         self.clock = clock
         self.scenario = scenario
@@ -249,11 +255,16 @@ class SimBoard:
         self.last_rp_kohm = [0.0] * n_channels  # the true Rp of the last pulse (kohm)
         self.last_i_ua = [0.0] * n_channels  # the true (physical) current of the last pulse (uA)
         self.align_end = False  # True: the ADC's last sample lands on the pulse's end (capture started T mod dt late)
-        self.corr = [None] * n_channels
+        self.cal_path = None
+        self.vmon_state = 0  # hp.VMON_NONE
+        self.vmon_cal = [None] * n_channels
+        if flash_dir:
+            self.cal_path = flash_dir.rstrip("/") + "/" + vmon_cal.CAL_FILE
+            self.vmon_cal, self.vmon_state = vmon_cal.boot_load(self.cal_path, n_channels)
         if correction:
             for k in range(n_channels):
                 if k < len(correction) and correction[k]:
-                    self.corr[k] = correction_terms(correction[k][0], correction[k][1], cfg.VMON_UV_PER_COUNT)
+                    self.vmon_cal[k] = correction[k]
 
     # -------------------------------------------------- the scenario's clock
     def _advance_scenario(self):
@@ -288,9 +299,18 @@ class SimBoard:
             self.code[ch] = i_ua if i_ua > 0 else 0
             self.amp[ch] = self.code[ch]
             return self.amp[ch]
-        self.code[ch] = self.analog.code(i_ua)
-        self.amp[ch] = self.analog.delivered_ua(self.code[ch])
+        self.code[ch] = self.analog.code(i_ua, ch)
+        self.amp[ch] = self.analog.delivered_ua(self.code[ch], ch)
         return self.amp[ch]
+
+    def set_dac_gain(self, ch, ppm):
+        """The stored DAC gain of channel ch (ppm, 0: nominal), as dac_mcp4822.MCP4822.set_gain:
+        its full scale follows, so set_amplitude reports the current delivered. The ideal
+        board has no DAC: nothing changes."""
+        if not self.ideal:
+            fs = self.analog.fs_ua
+            d = ((ppm or 1000000) - 1000000) // 10
+            self.analog.fs_cal[ch] = fs + (fs * d + 50000) // 100000
 
     def stop(self, ch):
         self.set_amplitude(ch, 0)
@@ -333,7 +353,6 @@ class SimBoard:
         gain = an.mon_gain[ch] * g * 1000.0 / uv  # electrode mV -> ADC counts
         off = an.mon_off_counts[ch]
         dnl = an.dnl
-        corr = self.corr[ch]
         since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
         left = 1.0  # e^(-t/tau) at t = (k+1) dt (+ lag)
         lag = 0
@@ -359,8 +378,6 @@ class SimBoard:
             c = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
             if dnl is not None:
                 c = dnl[c]
-            if corr is not None:
-                c = correct_count(c, corr[0], corr[1])
             buf[k] = c
         v_end = i_end / 1000.0 * self.last_rp_kohm[ch] * 1000.0 if on else full
         self.last_i_ua[ch] = i_end if v_end <= full else full / self.last_rp_kohm[ch]
@@ -369,6 +386,11 @@ class SimBoard:
             self.spike[ch] = 0
         self.clock.advance(t_us)
         return n
+
+    def store_vmon(self, values):
+        """Write the monitor correction to the board's flash folder (CMD_SET_VMON ...
+        VMON_STORE); False without one (nothing written)."""
+        return self.cal_path is not None and vmon_cal.store(self.cal_path, values)
 
     def send(self, buf):
         self.usb.send(buf)

@@ -26,6 +26,11 @@ _B = const(0x8000)
 _GA_1X = const(0x2000)
 _ACTIVE = const(0x1000)
 FULL_UA_MAX = const(100000)  # checked at set-up: 4096 * full_ua stays a small int on the rp2
+# set_gain(): the current at code 4096 of one output, scaled by its measured gain (the
+# self-test against a scope, CMD_SET_VMON) within +-10 %: at most 1.1 * FULL_UA_MAX, so
+# 4096 * full stays a small int; ppm taken to 10 ppm so full_ua * step < 2**30.
+GAIN_PPM_MIN = const(900000)
+GAIN_PPM_MAX = const(1100000)
 
 
 def code_for(i_ua, full_ua):
@@ -72,6 +77,7 @@ class MCP4822:
             p(1)
         self.n = n_channels
         self.full_ua = full_ua
+        self.full = [full_ua] * n_channels  # per output: full_ua x its gain (set_gain)
         self.buf = bytearray(2)
         self.codes = [0] * n_channels  # the code last written to each output
 
@@ -92,12 +98,25 @@ class MCP4822:
         cs(1)
         self.codes[ch] = code
 
+    def set_gain(self, ch, ppm):
+        """Output ch delivers ppm / 1e6 times its nominal current (0: nominal): its full
+        scale follows, so set_ua() returns the current it delivers. ValueError out of
+        range (nothing changes). Allocates nothing."""
+        if ppm == 0:
+            ppm = 1000000
+        if not GAIN_PPM_MIN <= ppm <= GAIN_PPM_MAX:
+            raise ValueError("DAC gain out of range")
+        d = (ppm - 1000000) // 10  # |d| <= 10000: full_ua * d < 2**30
+        full = self.full_ua
+        self.full[ch] = full + (full * d + 50000) // 100000
+
     def set_ua(self, ch, i_ua):
         """Set channel ch to the nearest current not above i_ua; return the current
         in uA the output stage will deliver (code * LSB, at most full scale).
         code_for(), ua_for() and write() inlined: each Python call costs 15-25 us
-        on the chip, and this runs once per channel per frame."""
-        full = self.full_ua
+        on the chip, and this runs once per channel per frame. The channel's full
+        scale includes its measured gain (set_gain)."""
+        full = self.full[ch]
         if i_ua <= 0:
             code = 0
         elif i_ua >= full:

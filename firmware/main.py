@@ -194,17 +194,10 @@ def main_sim(argv):
         raise UsageError(str(e))
     clock = board_sim.RealClock() if o["realtime"] else board_sim.VirtualClock(o["start"])
     usb = board_sim.StdioUSB()
-    correction = None
-    if o["flash_dir"]:
-        import vmon_cal
-
-        path = o["flash_dir"].rstrip("/") + "/" + vmon_cal.CAL_FILE
-        try:
-            correction = vmon_cal.load(path, o["channels"])  # None: nothing stored, the monitor uncorrected
-        except ValueError as e:
-            raise UsageError("%s: %s" % (path, e))
+    # the flash folder: the monitor correction read at boot (a missing or corrupt file leaves
+    # the monitors uncorrected, GET_INFO says which), written by CMD_SET_VMON
     board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb, ideal=o["ideal"],
-                               load_ohm=o["load_ohm"], correction=correction)
+                               load_ohm=o["load_ohm"], flash_dir=o["flash_dir"])
     s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=o["keepalive_ms"])
     if o["auto"]:
         auto_start(s, o, clock.ticks_us())

@@ -114,6 +114,12 @@ class Channel:
         self.held = False
         self.pi = 0  # the held proposal
         self.pt = 0
+        self.vmon_g = 0  # the monitor correction applied (gain ppm, offset mV; 0, 0: none) ...
+        self.vmon_off = 0
+        self.vmon_k = 0  # ... as vmon_cal.terms() for _measure (0: none)
+        self.vmon_o = 0
+        self.vmon_dac = 0  # the amplitude DAC's gain applied (ppm; 0: nominal)
+        self.vmon_stored = None  # (gain ppm, offset mV, DAC gain ppm) the board's flash holds for this channel
 
 
 class Stimulator:
@@ -158,6 +164,15 @@ class Stimulator:
         self.chans = [Channel(k, lim) for k in range(n)]
         for c in self.chans:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
+        # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
+        vm = getattr(board, "vmon_cal", None)
+        self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
+        self._dac_gain = hasattr(board, "set_dac_gain")  # the board scales its DAC's full scale
+        for c in self.chans:
+            v = vm[c.ch] if vm and c.ch < len(vm) else None
+            if v:
+                c.vmon_stored = v
+                self._vmon_apply(c, v[0], v[1], v[2] if len(v) > 2 else 0)
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -369,6 +384,13 @@ class Stimulator:
                 v = buf[1]
         else:
             v = _peak3(buf, n)
+        k = c.vmon_k  # the monitor's gain and offset out (vmon_cal.correct, inlined; monotonic:
+        if k:  # the corrected peak is the peak of the corrected samples)
+            v = ((v * 16 - c.vmon_o) * k + 65536) >> 17
+            if v < 0:
+                v = 0
+            elif v > 4095:
+                v = 4095
         vp = v * self.uv_per_count // 1000
         c.vp = vp
         c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0
@@ -517,6 +539,7 @@ class Stimulator:
         while k < len(name) and k < hp.BOARD_LEN:
             b[hp.O_BOARD + k] = name[k]
             k += 1
+        b[hp.O_INFO_VMON] = self.vmon_state
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
 
@@ -533,7 +556,15 @@ class Stimulator:
             f |= 2
         if c.ctl.calibrated:
             f |= 4
+        if c.vmon_k:
+            f |= hp.CAL_FLAG_VMON
+        if c.vmon_dac:
+            f |= hp.CAL_FLAG_DAC
         b[hp.O_CAL_FLAGS] = f
+        hp.put_i32(b, hp.O_CAL_VMON_GAIN, c.vmon_g)
+        hp.put_i32(b, hp.O_CAL_VMON_OFF, c.vmon_off)
+        hp.put_i32(b, hp.O_CAL_DAC_GAIN, c.vmon_dac)
+        b[hp.O_CAL_VMON_STATE] = self.vmon_state
         hp.put_u16(b, hp.O_CAL_I0, c.i0)
         hp.put_u16(b, hp.O_CAL_T0, c.t0)
         hp.put_i32(b, hp.O_CAL_X, c.x)
@@ -621,6 +652,8 @@ class Stimulator:
             return self._set_limits(r)
         if cmd == hp.CMD_SET_SKIN:
             return self._set_skin(r, lo, hi)
+        if cmd == hp.CMD_SET_VMON:
+            return self._set_vmon(r, ch)
         return self._ack(r, hp.RES_UNKNOWN_COMMAND, hp.O_OUT_CMD)
 
     def _has_model(self):
@@ -728,4 +761,72 @@ class Stimulator:
         while k < self.n:  # validated above against the same rules: cannot raise
             self.chans[k].ctl.set_limits(i_min, i_max, t_min, t_max, q_max)
             k += 1
+        return self._ack(r, hp.RES_OK, 0)
+
+    # ------------------------------------------------- the monitor correction
+    def _vmon_apply(self, c, gain_ppm, offset_mv, dac_ppm):
+        """Channel c's monitor correction (0, 0: none) and DAC gain (0: nominal) from now on;
+        the output is set again before the next pulse (its current changes with the DAC's
+        full scale). Allocates nothing."""
+        c.vmon_dac = dac_ppm
+        if self._dac_gain:
+            self.board.set_dac_gain(c.ch, dac_ppm)
+        c.ai = 0  # _pre_pulse: no pulse until _output has set the amplitude with the new scale
+        c.vmon_g = gain_ppm
+        c.vmon_off = offset_mv
+        if gain_ppm:
+            g = gain_ppm // 100  # vmon_cal.terms(), inlined: a tuple would allocate
+            c.vmon_k = (81920000 + g // 2) // g
+            c.vmon_o = (offset_mv * 32000 + self.uv_per_count) // (2 * self.uv_per_count)
+        else:
+            c.vmon_k = 0
+            c.vmon_o = 0
+
+    def _set_vmon(self, r, ch):
+        # CMD_SET_VMON (hid_protocol): one channel; every channel disarmed; checked before
+        # anything changes; VMON_STORE writes the board's flash first (outside the heap
+        # lock: the file allocates) and applies only what was written.
+        if ch == hp.CH_ALL:
+            return self._ack(r, hp.RES_BAD_CHANNEL, hp.O_OUT_CH)
+        k = 0
+        while k < self.n:
+            if self.chans[k].armed:
+                return self._ack(r, hp.RES_BAD_STATE, hp.O_OUT_CH)
+            k += 1
+        op = r[hp.O_ARG]
+        if op != hp.VMON_APPLY and op != hp.VMON_STORE:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
+        if r[hp.O_ARG + 1] or r[hp.O_ARG + 2] or r[hp.O_ARG + 3]:
+            return self._ack(r, hp.RES_BAD_FORMAT, hp.O_ARG + 1)
+        g = hp.get_i32(r, hp.O_ARG + 4)
+        off = hp.get_i32(r, hp.O_ARG + 8)
+        dac = hp.get_i32(r, hp.O_ARG + 12)
+        if g or off:
+            if not hp.VMON_GAIN_PPM_MIN <= g <= hp.VMON_GAIN_PPM_MAX:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
+            if not hp.VMON_OFFSET_MV_MIN <= off <= hp.VMON_OFFSET_MV_MAX:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
+        if dac and not hp.VMON_GAIN_PPM_MIN <= dac <= hp.VMON_GAIN_PPM_MAX:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
+        if not self._dac_gain and dac:  # this board cannot scale its DAC: refused, nothing changes
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
+        c = self.chans[ch]
+        if op == hp.VMON_STORE:
+            locked = self.locked
+            if locked:  # everything from here allocates (a bound method, the list, the file)
+                self._leave()
+            try:
+                store = getattr(self.board, "store_vmon", None)
+                values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
+                values[ch] = (g, off, dac) if g or dac else None
+                ok = store is not None and store(values)
+                if ok:
+                    c.vmon_stored = values[ch]
+            finally:
+                if locked:
+                    self._enter()
+            if not ok:
+                return self._ack(r, hp.RES_STORE_FAILED, 0)
+            self.vmon_state = hp.VMON_STORED
+        self._vmon_apply(c, g, off, dac)
         return self._ack(r, hp.RES_OK, 0)

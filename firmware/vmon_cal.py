@@ -4,18 +4,26 @@
 # channel. Read once at boot (load); applying it is integer-only with every
 # intermediate < 2**30 (correct), and monotonic, so correcting the peak of a
 # pulse equals correcting every sample before the peak search.
-# Used by the simulated board (board_sim) today; on the rp2, board_rp2 would
-# load it at boot the same way (not wired yet).
+# Both boards read it at boot (board_rp2.load_vmon, board_sim.SimBoard: boot_load,
+# which never raises: a missing file or a corrupt one leaves the monitors
+# uncorrected and says which in its state, reported by GET_INFO) and write it
+# when the host sends CMD_SET_VMON ... VMON_STORE (store: a temporary file
+# renamed over the old one, so a reset mid-write keeps the old file or the new
+# one, never half of one). stim._measure applies it to each pulse's peak count.
+import hid_protocol as hp
+
 CAL_HEADER = "steadytouch monitor correction v1"
 CAL_FILE = "vmon_cal.txt"
-CAL_GAIN_PPM = (900000, 1100000)  # accepted monitor gain (measured/true) in ppm
-CAL_OFFSET_MV = (-2000, 2000)  # accepted monitor offset (electrode-referred mV)
+CAL_GAIN_PPM = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # accepted monitor gain (measured/true) in ppm
+CAL_OFFSET_MV = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)  # accepted monitor offset (electrode-referred mV)
 ADC_MAX = 4095
 
 
 def parse(text, n_channels):
-    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV` per channel.
-    Returns [(gain_ppm, offset_mv) or None per channel]; ValueError names the line."""
+    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]`
+    per channel (GAIN_PPM 0 with OFFSET_MV 0: the monitor uncorrected; DAC_GAIN_PPM 0 or
+    absent: the DAC nominal). Returns [(gain_ppm, offset_mv, dac_gain_ppm) or None per
+    channel]; ValueError names the line."""
     lines = text.splitlines()
     if not lines or lines[0].strip() != CAL_HEADER:
         raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
@@ -26,15 +34,30 @@ def parse(text, n_channels):
             continue
         parts = ln.split()
         try:
+            if not 3 <= len(parts) <= 4:
+                raise ValueError
             ch, g, off = int(parts[0]), int(parts[1]), int(parts[2])
-        except (ValueError, IndexError):
-            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV" % (k + 1))
-        if not (CAL_GAIN_PPM[0] <= g <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= off <= CAL_OFFSET_MV[1]):
-            raise ValueError("correction file line %d: gain %d ppm or offset %d mV out of range [%d, %d] / [%d, %d]"
-                             % (k + 1, g, off, CAL_GAIN_PPM[0], CAL_GAIN_PPM[1], CAL_OFFSET_MV[0], CAL_OFFSET_MV[1]))
-        if 0 <= ch < n_channels:
-            out[ch] = (g, off)
+            dac = int(parts[3]) if len(parts) == 4 else 0
+        except ValueError:
+            raise ValueError("correction file line %d: expected CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]" % (k + 1))
+        if not ok(g, off, dac):
+            raise ValueError("correction file line %d: gain %d ppm, offset %d mV or DAC gain %d ppm out of range "
+                             "[%d, %d] / [%d, %d] / [%d, %d] (or 0)" % (k + 1, g, off, dac, CAL_GAIN_PPM[0],
+                                                                        CAL_GAIN_PPM[1], CAL_OFFSET_MV[0],
+                                                                        CAL_OFFSET_MV[1], CAL_GAIN_PPM[0],
+                                                                        CAL_GAIN_PPM[1]))
+        if 0 <= ch < n_channels and (g or dac):
+            out[ch] = (g, off, dac)
     return out
+
+
+def ok(gain_ppm, offset_mv, dac_gain_ppm):
+    """What CMD_SET_VMON and the file accept: the monitor's gain and offset in range, or both 0
+    (uncorrected); the DAC's gain in range or 0 (nominal)."""
+    if gain_ppm or offset_mv:
+        if not (CAL_GAIN_PPM[0] <= gain_ppm <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= offset_mv <= CAL_OFFSET_MV[1]):
+            return False
+    return dac_gain_ppm == 0 or CAL_GAIN_PPM[0] <= dac_gain_ppm <= CAL_GAIN_PPM[1]
 
 
 def load(path, n_channels):
@@ -45,6 +68,46 @@ def load(path, n_channels):
     except OSError:
         return None
     return parse(text, n_channels)
+
+
+def boot_load(path, n_channels):
+    """(values, state) for a board's boot: values as parse() (None per channel when
+    nothing usable is stored); state hp.VMON_NONE (no file), VMON_LOADED or VMON_BAD
+    (unreadable or out of range: ignored). Never raises."""
+    try:
+        f = open(path)
+    except OSError:
+        return [None] * n_channels, hp.VMON_NONE
+    try:
+        with f:
+            return parse(f.read(), n_channels), hp.VMON_LOADED
+    except Exception:  # ValueError, UnicodeError (not UTF-8), OSError, MemoryError: never a crash at boot
+        return [None] * n_channels, hp.VMON_BAD
+
+
+def text(values):
+    """The file's text for values [(gain_ppm, offset_mv, dac_gain_ppm) or None per channel]."""
+    out = CAL_HEADER + ("\n# CH GAIN_PPM OFFSET_MV DAC_GAIN_PPM: measured mV = gain x true mV + offset; "
+                        "delivered uA = DAC gain x nominal uA (steadytouch selftest)\n")
+    for ch in range(len(values)):
+        v = values[ch]
+        if v:
+            out += "%d %d %d %d\n" % (ch, v[0], v[1], v[2] if len(v) > 2 else 0)
+    return out
+
+
+def store(path, values):
+    """Write the file for values: a temporary file renamed over the old one. True if written."""
+    import os
+
+    tmp = path + ".tmp"
+    try:
+        with open(tmp, "w") as f:
+            f.write(text(values))
+        os.rename(tmp, path)
+    except OSError:
+        return False
+    return True
 
 
 def terms(gain_ppm, offset_mv, uv_per_count):

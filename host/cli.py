@@ -20,7 +20,7 @@ import sensation_core as sc
 from . import __version__
 from .device import Device, DeviceError
 from .files import FileProblem, Outputs, dump_json
-from .protocol import STOP_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
+from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
@@ -164,6 +164,10 @@ def cmd_info(a) -> int:
                     + (" (armed)" if c.flags & 2 else ""))
             else:
                 say(f"  ch{ch}: not calibrated")
+            if c.vmon_gain_ppm or c.dac_gain_ppm:  # steadytouch selftest's correction
+                say(f"  ch{ch}: monitor gain {c.vmon_gain_ppm / 1e6:.4f} offset {c.vmon_offset_mv:+d} mV, "
+                    f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}")
+        say(f"  correction: {VMON_STATE_WORDS.get(i.vmon_state, i.vmon_state)}")
     return 0
 
 
@@ -712,60 +716,15 @@ def cmd_synth(a) -> int:
 
 def cmd_selftest(a) -> int:
     """Self-test and monitor correction on a dummy load (host/selftest.py)."""
-    import os
-    import tempfile
-
     from . import selftest as st
-    from .simrun import sim_flash_dir
 
     _finite("load-ohm", a.load_ohm, *st.LOAD_OHM_RANGE)
     if a.pulses < 2 or a.pulses > 100:
         raise st.SelfTestError(f"--pulses {a.pulses} out of range [2, 100]")
     url = a.device
-    if url.startswith("sim://") and "load=" not in url:  # the simulated resistor in place of the electrodes
+    if url.startswith(("sim://", "emu://")) and "load=" not in url:  # the simulated resistor in place of the electrodes
         url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
-    sim = url.startswith("sim://")
-    old_env = os.environ.get("STEADYTOUCH_SIM_FLASH")
-    with tempfile.TemporaryDirectory() as empty:
-        if sim:  # measure the raw board: boot it without the stored correction
-            os.environ["STEADYTOUCH_SIM_FLASH"] = empty
-        try:
-            with open_transport(url) as t:
-                d = Device(t)
-                info = d.info()
-                chans = list(range(info.n_channels)) if a.channel is None else [a.channel]
-                if any(c >= info.n_channels for c in chans):
-                    raise st.SelfTestError(f"--channel {a.channel} out of range [0, {info.n_channels - 1}]")
-                pts = st.plan(a.load_ohm, info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us,
-                              info.q_max_pc, info.compliance_mv)
-                say(f"{a.device}: {len(pts)} test points x {a.pulses} pulses on {len(chans)} channel(s), "
-                    f"{a.load_ohm} ohm load ...")
-                rows = st.measure(d, pts, chans, a.pulses)
-        finally:
-            if sim:
-                if old_env is None:
-                    os.environ.pop("STEADYTOUCH_SIM_FLASH", None)
-                else:
-                    os.environ["STEADYTOUCH_SIM_FLASH"] = old_env
-    fits = [st.fit_channel(ch, rows[ch], a.load_ohm) for ch in chans]
-    for line in st.report_lines(fits, a.load_ohm):
-        say(line)
-    worst = max(f.worst_rp_err_before for f in fits)
-    if a.no_store:
-        return 0
-    if sim:
-        path = st.save(fits, sim_flash_dir())
-        say(f"stored the correction in the simulated board's flash: {path}")
-        with open_transport(url) as t:  # a reset: the board reads it at boot
-            d = Device(t)
-            check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
-            rows = st.measure(d, check, chans, a.pulses)
-        after = max(float(max(abs(v * 1000.0 / i / a.load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
-        say(f"after a reset, with the stored correction: worst Rp error {after:.2%} (was {worst:.2%})")
-    else:
-        path = st.save(fits, Path(a.save_dir))
-        say(f"wrote {path}; copy it to the board's flash (mpremote cp {path} :{st.CAL_FILE}) and reset it")
-    return 0
+    return st.run(url, a.load_ohm, a.channel, a.pulses, not a.no_store, a.save_dir, say, open_transport, a.scope)
 
 
 # ------------------------------------------------------------ parser
@@ -937,12 +896,16 @@ def build_parser() -> argparse.ArgumentParser:
     s = add("selftest", cmd_selftest, "first-run self-test on a resistor in place of the electrodes: fits the "
             "monitor's gain and offset, reports linearity and worst error, stores the correction",
             "  steadytouch selftest --load-ohm 10000 --device sim://steady\n"
-            "  steadytouch selftest --load-ohm 10000 --device hid://1209:0001 --save-dir cal/")
+            "  steadytouch selftest --load-ohm 10000 --device hid://1209:0001 --save-dir cal/\n"
+            "  steadytouch selftest --load-ohm 10000 --device emu://steady")
     s.add_argument("--load-ohm", type=int, required=True, help="the dummy load's resistance (1000-100000 ohm)")
     s.add_argument("--channel", type=int, default=None, help="one channel (default: all)")
     s.add_argument("--pulses", type=int, default=8, help="pulses per test point (default 8)")
     s.add_argument("--no-store", action="store_true", help="report only")
-    s.add_argument("--save-dir", default=".", help="a board: folder for vmon_cal.txt (default: here)")
+    s.add_argument("--scope", action="store_true", help="also the DAC's own gain: each channel pulses 4500 uA x "
+                   "1000 us on the load and asks for the plateau a scope reads across it (mV, on stdin)")
+    s.add_argument("--save-dir", default=None, help="also keep a copy of vmon_cal.txt in this folder "
+                   "(the device stores its own in its flash)")
 
     add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
         "  steadytouch devices", device=False)

@@ -178,5 +178,10 @@ class Device:
     def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
         return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))
 
+    def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0):
+        """Channel ch's monitor correction and DAC gain, in RAM (store=False) or also in the board's flash."""
+        return self.command(self.cmds.set_vmon(ch, gain_ppm, offset_mv, store, dac_gain_ppm), timeout_s=max(
+            5.0, getattr(self.t, "answer_s", 2.0)))
+
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS):
         return self.command(self.cmds.keepalive(timeout_ms))

@@ -24,6 +24,7 @@ RESULT_WORDS = {
     hp.RES_BAD_FORMAT: "malformed report",
     hp.RES_NO_FRAME_TIME: "no room in the frame for a skin model's work at this rate and t_max "
                           "(lower the rate or t_max first)",
+    hp.RES_STORE_FAILED: "the board could not write its flash (nothing changed)",
 }
 STOP_WORDS = {
     hp.STOP_NONE: "stimulating",
@@ -44,6 +45,13 @@ COMMAND_WORDS = {
     hp.CMD_KEEPALIVE: "keepalive",
     hp.CMD_GET_INFO: "info",
     hp.CMD_SET_SKIN: "skin",
+    hp.CMD_SET_VMON: "monitor correction",
+}
+VMON_STATE_WORDS = {
+    hp.VMON_NONE: "no correction stored (monitor uncorrected)",
+    hp.VMON_LOADED: "stored correction loaded at boot",
+    hp.VMON_BAD: "stored correction unreadable or out of range: ignored (monitor uncorrected)",
+    hp.VMON_STORED: "correction stored since boot",
 }
 
 _TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBB")  # bytes 0..47
@@ -122,6 +130,7 @@ class Info:
     keepalive_ms: int
     board: str
     result: int = hp.RES_OK
+    vmon_state: int = hp.VMON_NONE  # what the board's flash held at boot (VMON_STATE_WORDS)
 
     @property
     def ok(self) -> bool:
@@ -142,6 +151,10 @@ class CalInfo:
     y_star_pc: int
     rp0_ohm: int  # 0 until the first pulse after arming measured it
     mode: int
+    vmon_gain_ppm: int = 0  # the monitor correction applied to this channel (0: none)
+    vmon_offset_mv: int = 0
+    vmon_state: int = hp.VMON_NONE
+    dac_gain_ppm: int = 0  # the amplitude DAC's gain applied (0: nominal)
 
     @property
     def ok(self) -> bool:
@@ -206,7 +219,15 @@ def _check_info(i: Info):
 def _check_cal(c: CalInfo):
     _need(c.result in RESULT_WORDS, "result", c.result, f"0..{max(RESULT_WORDS)}")
     _need(c.channel <= 3, "channel", c.channel, "0..3")
-    _need(c.flags <= 7, "flags", f"0x{c.flags:x}", "bits of 0x7")
+    _need(c.flags <= 31, "flags", f"0x{c.flags:x}", "bits of 0x1f")
+    _need(c.dac_gain_ppm == 0 or hp.VMON_GAIN_PPM_MIN <= c.dac_gain_ppm <= hp.VMON_GAIN_PPM_MAX, "dac_gain_ppm",
+          c.dac_gain_ppm, f"0 or {hp.VMON_GAIN_PPM_MIN}..{hp.VMON_GAIN_PPM_MAX}")
+    _need(c.vmon_gain_ppm == 0 and c.vmon_offset_mv == 0 or (
+        hp.VMON_GAIN_PPM_MIN <= c.vmon_gain_ppm <= hp.VMON_GAIN_PPM_MAX
+        and hp.VMON_OFFSET_MV_MIN <= c.vmon_offset_mv <= hp.VMON_OFFSET_MV_MAX), "vmon",
+        f"{c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV",
+        f"0, 0 or {hp.VMON_GAIN_PPM_MIN}..{hp.VMON_GAIN_PPM_MAX} ppm, {hp.VMON_OFFSET_MV_MIN}..{hp.VMON_OFFSET_MV_MAX} mV")
+    _need(c.vmon_state in VMON_STATE_WORDS, "vmon_state", c.vmon_state, f"0..{max(VMON_STATE_WORDS)}")
     _need(c.i0_ua <= sc.I_LIMIT_UA, "i0_ua", c.i0_ua, f"0..{sc.I_LIMIT_UA}")
     _need(c.t0_us <= sc.T_LIMIT_US, "t0_us", c.t0_us, f"0..{sc.T_LIMIT_US}")
     _need(sc.X_STAR_MIN_OHM <= c.x_star_ohm <= 0, "x_star_ohm", c.x_star_ohm, f"{sc.X_STAR_MIN_OHM}..0")
@@ -260,14 +281,18 @@ def decode(report: bytes):
             keepalive_ms=struct.unpack_from("<H", report, hp.O_INFO_KEEPALIVE)[0],
             board=raw_board.decode("ascii"),
             result=report[hp.O_RESULT],
+            vmon_state=report[hp.O_INFO_VMON],
         )
+        _need(i.vmon_state in VMON_STATE_WORDS, "vmon_state", i.vmon_state, f"0..{max(VMON_STATE_WORDS)}")
         _check_info(i)
         return i
     if typ == hp.REP_CAL:
         i0, t0 = struct.unpack_from("<HH", report, hp.O_CAL_I0)
         x, y, rp0 = struct.unpack_from("<iii", report, hp.O_CAL_X)
+        vg, vo = struct.unpack_from("<ii", report, hp.O_CAL_VMON_GAIN)
         c = CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
-                    report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE])
+                    report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE], vg, vo,
+                    report[hp.O_CAL_VMON_STATE], struct.unpack_from("<i", report, hp.O_CAL_DAC_GAIN)[0])
         _check_cal(c)
         return c
     raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")
@@ -468,6 +493,24 @@ class Commands:
             if rate_hz and self.frame is not None:
                 self._fits(rate_hz, self.frame[2], "rate")
         return bytes(hp.cmd_set_mode(bytearray(64), mode & 0xFF, rate_hz & 0xFF, self._next()))
+
+    def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0) -> bytes:
+        """Channel ch's voltage-monitor correction (steadytouch selftest); (0, 0): none;
+        dac_gain_ppm: its amplitude DAC's gain (0: nominal). store: also written to the
+        board's flash (read at every boot)."""
+        ch = self._ch(ch)
+        if self.check:
+            if ch == hp.CH_ALL:
+                raise CommandError("monitor correction: one channel at a time (0..3), not all")
+            gain_ppm, offset_mv = _whole("gain_ppm", gain_ppm), _whole("offset_mv", offset_mv)
+            if gain_ppm or offset_mv:
+                gain_ppm = _in("gain_ppm", gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
+                offset_mv = _in("offset_mv", offset_mv, hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX, "mV")
+            dac_gain_ppm = _whole("dac_gain_ppm", dac_gain_ppm)
+            if dac_gain_ppm:
+                dac_gain_ppm = _in("dac_gain_ppm", dac_gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
+        op = hp.VMON_STORE if store else hp.VMON_APPLY
+        return bytes(hp.cmd_set_vmon(bytearray(64), ch, op, gain_ppm, offset_mv, self._next(), dac_gain_ppm))
 
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS) -> bytes:
         """The host is alive; the device stops every channel if silent for timeout_ms (it cannot be switched off)."""

@@ -4,21 +4,33 @@ With a resistor R in place of the electrodes, every pulse should read Vp = I R.
 The self-test pulses each channel across currents and widths (open loop, a few
 pulses per point), fits  Vp_measured = G (I R) + offset  by least squares
 (numpy), reports the linearity (residuals) and the worst Rp error before and
-after the correction, and stores the correction where the firmware reads it at
-boot (the simulated board: `vmon_cal.txt` in its flash folder, see
-simrun.sim_flash_dir; a board: the same file, copied to its flash).
+after the correction, and stores the correction on the device itself, the same
+way on every transport: CMD_SET_VMON (hid_protocol) with VMON_STORE makes the
+firmware write `vmon_cal.txt` to its own flash (the rp2 board's littlefs; the
+simulated board's flash folder, simrun.sim_flash_dir) and apply it; GET_INFO
+reads it back; the firmware reads the file at every boot. The raw monitor is
+measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
+interrupted self-test leaves the stored correction as it was (it returns at the
+next reset; the self-test also puts the old one back when it stops).
 
-What a resistor can and cannot tell (docs/simulation.md, "Self-test"): the
-measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor sees
-the DAC's gain and the monitor's gain only as their product G ("path gain").
-Correcting the monitor by G makes Rp = Vp / I exact, which is what the
-controller measures against; the DAC's own share, the error of the charge
-actually delivered, needs a second reference (a scope across the load).
+What a resistor can and cannot tell (docs/hardware.md, "First-run self-test"):
+the measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor
+sees the DAC's gain and the monitor's gain only as their product G ("path
+gain"). Correcting the monitor by G makes Rp = Vp / I exact, which is what the
+controller measures against. The DAC's own share (the charge actually
+delivered, and the hard current limit counted on the delivered current) needs an
+independent reference: with --scope the builder reads the plateau of a
+reference pulse across the load on a scope, V = g_dac x I_nominal x R, which
+gives g_dac; the monitor is then corrected by G / g_dac and the board scales its
+DAC's full scale by g_dac, so the current it reports is the one delivered.
 Units: uA, us, mV, ohm; gains in ppm in the stored file.
 """
 
 from __future__ import annotations
 
+import contextlib
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +41,8 @@ import sensation_core as sc
 
 CAL_FILE = "vmon_cal.txt"  # firmware/vmon_cal.py CAL_FILE
 CAL_HEADER = "steadytouch monitor correction v1"  # firmware/vmon_cal.py CAL_HEADER
-GAIN_PPM_RANGE = (900_000, 1_100_000)  # what the firmware accepts (vmon_cal.CAL_GAIN_PPM)
-OFFSET_MV_RANGE = (-2000, 2000)
+GAIN_PPM_RANGE = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # what the firmware accepts (CMD_SET_VMON)
+OFFSET_MV_RANGE = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)
 LOAD_OHM_RANGE = (1000, 100_000)
 CURRENTS_UA = (500, 1000, 2000, 3000, 4500, 6000, 8000)
 WIDTHS_US = (100, 300, 1000)
@@ -52,14 +64,21 @@ class ChannelFit:
     worst_rp_err_after: float  # ... with the correction applied
     worst_point_err_after: float  # largest |mean Rp of a test point - R| / R, corrected (noise averaged)
     rows: list = field(default_factory=list, repr=False)
+    dac_gain: float = 0.0  # delivered / nominal current, from a scope reading (0: not measured)
 
     @property
     def gain_ppm(self) -> int:
-        return round(self.gain * 1e6)
+        """The monitor's gain to store: the path gain, or its share once the DAC's is known."""
+        return round(self.gain / (self.dac_gain or 1.0) * 1e6)
+
+    @property
+    def dac_gain_ppm(self) -> int:
+        return round(self.dac_gain * 1e6)
 
     def in_range(self) -> bool:
         return (GAIN_PPM_RANGE[0] <= self.gain_ppm <= GAIN_PPM_RANGE[1]
-                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1])
+                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1]
+                and (not self.dac_gain or GAIN_PPM_RANGE[0] <= self.dac_gain_ppm <= GAIN_PPM_RANGE[1]))
 
 
 def plan(load_ohm: int, i_min_ua: int, i_max_ua: int, t_min_us: int, t_max_us: int, q_max_pc: int,
@@ -95,8 +114,9 @@ def fit_channel(ch: int, rows, load_ohm: float) -> ChannelFit:
 
 
 def correction_text(fits: list[ChannelFit]) -> str:
-    lines = [CAL_HEADER, "# CH GAIN_PPM OFFSET_MV: measured mV = gain x true mV + offset (steadytouch selftest)"]
-    lines += [f"{f.channel} {f.gain_ppm} {round(f.offset_mv)}" for f in fits]
+    lines = [CAL_HEADER, "# CH GAIN_PPM OFFSET_MV DAC_GAIN_PPM: measured mV = gain x true mV + offset; "
+             "delivered uA = DAC gain x nominal uA (steadytouch selftest)"]
+    lines += [f"{f.channel} {f.gain_ppm} {round(f.offset_mv)} {f.dac_gain_ppm}" for f in fits]
     return "\n".join(lines) + "\n"
 
 
@@ -123,6 +143,8 @@ def measure(d, points, channels: list[int], pulses: int = 8, timeout_s: float = 
                 rep = d.read(0.5)
                 if not isinstance(rep, Telemetry) or rep.channel not in got or rep.t_us != t_us:
                     continue
+                if rep.i_ua and not 0 <= i_ua - rep.i_ua < 5:  # a report of the point before, still queued
+                    continue
                 if rep.stop not in (hp.STOP_NONE,) or not rep.i_ua:
                     raise SelfTestError(f"ch{rep.channel} stopped at {i_ua} uA, {t_us} us "
                                         f"(stop reason {rep.stop}): is the load connected?")
@@ -141,10 +163,14 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
                    f"{f.worst_rp_err_before:7.2%} -> {f.worst_rp_err_after:.2%} ({f.worst_point_err_after:.2%})")
     out.append("G = DAC gain x monitor gain (one resistor sees only their product; correcting the monitor by G "
                "makes Rp = Vp/I exact)")
+    for f in fits:
+        if f.dac_gain:
+            out.append(f"ch{f.channel}: against the scope the DAC delivers {f.dac_gain:.4f} x nominal; the monitor's "
+                       f"own gain is {f.gain_ppm / 1e6:.4f}")
     return out
 
 
-def save(fits: list[ChannelFit], folder: Path) -> Path:
+def check_range(fits: list[ChannelFit]) -> None:
     bad = [f for f in fits if not f.in_range()]
     if bad:
         f = bad[0]
@@ -152,9 +178,164 @@ def save(fits: list[ChannelFit], folder: Path) -> Path:
                             f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}] / "
                             f"[{OFFSET_MV_RANGE[0]}, {OFFSET_MV_RANGE[1]}] mV: check the load's value and wiring; "
                             "nothing was stored")
+
+
+def save(fits: list[ChannelFit], folder: Path) -> Path:
+    """A copy of the correction in a file on this computer (the device stores its own)."""
+    check_range(fits)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / CAL_FILE
     tmp = path.with_suffix(".tmp")
     tmp.write_text(correction_text(fits))
     tmp.replace(path)
     return path
+
+
+def worst_rp_err(rows, chans, load_ohm: int) -> float:
+    return max(float(max(abs(v * 1000.0 / i / load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
+
+
+def store_on_device(d, fits: list[ChannelFit]) -> list:
+    """CMD_SET_VMON ... VMON_STORE per channel (the firmware writes its flash, then applies
+    it), then GET_INFO reads each back; SelfTestError if the device holds anything else."""
+    check_range(fits)
+    back = []
+    for f in fits:
+        d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True, dac_gain_ppm=f.dac_gain_ppm)
+        c = d.calibration(f.channel)
+        if (c.vmon_gain_ppm, c.vmon_offset_mv, c.vmon_state) != (f.gain_ppm, round(f.offset_mv), hp.VMON_STORED):
+            raise SelfTestError(f"ch{f.channel}: the device reads back {c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV "
+                                f"(state {c.vmon_state}) after storing {f.gain_ppm} ppm, {round(f.offset_mv)} mV")
+        if c.dac_gain_ppm != f.dac_gain_ppm:
+            raise SelfTestError(f"ch{f.channel}: the device reads back a DAC gain of {c.dac_gain_ppm} ppm after "
+                                f"storing {f.dac_gain_ppm} ppm")
+        back.append(c)
+    return back
+
+
+SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
+
+
+def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600.0) -> float:
+    """Pulse channel ch alone at the reference (I, T), open loop, DAC and monitor nominal
+    (the caller switched the correction off), until ask(prompt) returns the builder's
+    scope reading of the pulse's plateau across the load (mV); the DAC's gain from it."""
+    import threading
+
+    from .protocol import Telemetry
+
+    i_ua, t_us = pulse
+    d.disarm()
+    d.calibrate(i_ua, t_us, 0, 0)
+    got: dict = {}
+    nominal = 0
+    with d.live(arm=ch):
+        while not nominal:  # the current the DAC's code stands for (what the firmware reports)
+            rep = d.read(2.0)
+            if rep is None:
+                raise SelfTestError(f"ch{ch}: no pulse at {i_ua} uA, {t_us} us: is the device running?")
+            # this pulse's (not a report of the sweep still queued): the DAC's step below the command
+            if isinstance(rep, Telemetry) and rep.channel == ch and rep.t_us == t_us and 0 < i_ua - rep.i_ua < 5:
+                nominal = rep.i_ua
+        prompt = (f"ch{ch} pulses {nominal} uA x {t_us} us on the {load_ohm} ohm load now: the plateau across the "
+                  f"load on the scope, in mV (nominal {nominal * load_ohm / 1000:.0f}): ")
+        def reader():
+            try:
+                got["text"] = ask(prompt)
+            except Exception as e:  # noqa: BLE001 - reported below, in the main thread
+                got["error"] = e
+
+        th = threading.Thread(target=reader, daemon=True)
+        th.start()
+        end = time.monotonic() + timeout_s
+        while th.is_alive():  # the device's keep-alive goes on while the builder reads the scope
+            if time.monotonic() > end:
+                raise SelfTestError(f"ch{ch}: no scope reading within {timeout_s:g} s")
+            rep = d.read(0.2)
+            if isinstance(rep, Telemetry) and rep.channel == ch and rep.stop not in (hp.STOP_NONE,):
+                raise SelfTestError(f"ch{ch} stopped while waiting for the scope (stop reason {rep.stop})")
+    if "error" in got:
+        raise got["error"]
+    if got.get("text") is None:
+        raise SelfTestError("--scope: no reading on stdin (it is closed)")
+    text = got["text"].strip()
+    try:
+        mv = float(text)
+    except ValueError:
+        raise SelfTestError(f"ch{ch}: scope reading {text!r} is not a number of mV") from None
+    g = mv * 1000.0 / (nominal * load_ohm)
+    if not (GAIN_PPM_RANGE[0] <= round(g * 1e6) <= GAIN_PPM_RANGE[1]):
+        raise SelfTestError(f"ch{ch}: {mv:g} mV on {load_ohm} ohm at {nominal} uA is a DAC gain of {g:.4f}, out of "
+                            f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}]: check the probe, "
+                            "its scale and the load; nothing was stored")
+    return g
+
+
+def _ask_stdin(prompt: str) -> str:
+    print(prompt, end="", flush=True)
+    line = sys.stdin.readline()
+    return line or None  # None: stdin closed
+
+
+def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, say, open_transport,
+        scope: bool = False, ask=_ask_stdin) -> int:
+    """The whole self-test on one device URL; returns the exit code (0)."""
+    from .device import Device
+
+    sim = url.startswith("sim://")
+    with open_transport(url) as t:
+        d = Device(t)
+        info = d.info()
+        chans = list(range(info.n_channels)) if channel is None else [channel]
+        if any(c >= info.n_channels for c in chans):
+            raise SelfTestError(f"--channel {channel} out of range [0, {info.n_channels - 1}]")
+        pts = plan(load_ohm, info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us,
+                   info.q_max_pc, info.compliance_mv)
+        say(f"{url}: {len(pts)} test points x {pulses} pulses on {len(chans)} channel(s), {load_ohm} ohm load ...")
+        d.disarm()
+        old = {ch: d.calibration(ch) for ch in chans}
+        done = False
+        try:
+            for ch in chans:  # the raw monitor: the correction off in RAM only
+                d.set_vmon(ch, 0, 0)
+            rows = measure(d, pts, chans, pulses)
+            fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            if scope:
+                for f in fits:
+                    f.dac_gain = scope_dac_gain(d, f.channel, load_ohm, SCOPE_PULSE, ask)
+            for line in report_lines(fits, load_ohm):
+                say(line)
+            worst = max(f.worst_rp_err_before for f in fits)
+            if not store:
+                return 0
+            back = store_on_device(d, fits)
+            done = True
+            say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
+                f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
+                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
+            check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
+            if not sim:
+                rows = measure(d, check, chans, pulses)
+                say(f"with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
+                    f"(was {worst:.2%})")
+        finally:
+            if not done:  # put back what the device applied before (its flash was not touched)
+                with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
+                    d.disarm()
+                    for ch, c in old.items():
+                        d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv, dac_gain_ppm=c.dac_gain_ppm)
+    if save_dir is not None:
+        say(f"a copy on this computer: {save(fits, Path(save_dir))}")
+    if sim:  # a reset: the simulated board boots again and reads its flash
+        with open_transport(url) as t:
+            d = Device(t)
+            for ch in chans:
+                c = d.calibration(ch)
+                f = fits[chans.index(ch)]
+                if c.vmon_state != hp.VMON_LOADED or (c.vmon_gain_ppm, c.dac_gain_ppm) != (f.gain_ppm, f.dac_gain_ppm):
+                    raise SelfTestError(f"ch{ch}: after a reset the board did not load the stored correction "
+                                        f"(state {c.vmon_state}, {c.vmon_gain_ppm} ppm)")
+            rows = measure(d, check, chans, pulses)
+        say(f"after a reset, with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
+            f"(was {worst:.2%})")
+    return 0

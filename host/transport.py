@@ -8,7 +8,7 @@ pyserial's `loop://` handlers).
   the same report stream on its stdio. The board has the real parts' analog
   errors unless `board=ideal`; `load=OHMS` puts a resistor in place of the
   electrodes (the self-test's dummy load).
-- `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y]` — the real MicroPython rp2
+- `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y&load=OHM&board=real|ideal]` — the real MicroPython rp2
   firmware on the emulated Pico (rp2040js, ../shared/emulator): its main loop
   (main_rp2) over its USB HID interface, the simulated electrode on its ADC.
 - `emu+tcp://127.0.0.1:PORT` — the HID interface of an emulated Pico that is
@@ -221,14 +221,15 @@ class EmuTransport(Transport):
     answer_s = 10.0
 
     def __init__(self, scenario: str = "steady", channels: int = 2, seed: int = 1,
-                 auto: tuple[int, int, int, int] | None = None):
+                 auto: tuple[int, int, int, int] | None = None, load_ohm: int = 0, ideal: bool = False):
         import shutil
         import tempfile
 
         from . import emu
         from .simrun import firmware_module
 
-        self.url = f"emu://{scenario}?channels={channels}&seed={seed}"
+        self.url = (f"emu://{scenario}?channels={channels}&seed={seed}" + (f"&load={load_ohm}" if load_ohm else "")
+                    + f"&board={'ideal' if ideal else 'real'}")
         self.host = None
         self._pushed = None
         mpy_dir = Path(tempfile.mkdtemp(prefix="steadytouch-emu-"))
@@ -254,9 +255,21 @@ class EmuTransport(Transport):
             chip = host.boot(host.image)
             chip.wiring(emu.load_cfg(), channels)
             code = f"import board_config\nboard_config.N_CHANNELS = {channels}\nimport main\n"
-            host.call("stream", code=code, scenario={
-                "keys": [list(k) for k in scen.keys], "interp_h": scen.interp_h, "seed": seed, "noise_counts": 1.5,
-                "electrode": {k: getattr(e, k) for k in ("area0", "rs", "rho_ref", "j_ref", "beta", "c", "alpha")}})
+            spec = {"keys": [list(k) for k in scen.keys], "interp_h": scen.interp_h, "seed": seed, "noise_counts": 1.5,
+                    "electrode": {k: getattr(e, k) for k in ("area0", "rs", "rho_ref", "j_ref", "beta", "c", "alpha")}}
+            if load_ohm:  # a resistor on every channel instead of the electrodes (the self-test's dummy load)
+                spec["load_ohm"] = load_ohm
+            if not ideal:  # the realistic board: the simulator's analog errors, from board_sim itself
+                bs = firmware_module("board_sim")
+                cfg = emu.load_cfg()
+                spec["noise_counts"] = bs.ADC_NOISE_COUNTS
+                spec["analog"] = {
+                    "dac_gain": [bs.DAC_GAIN[k % 4] for k in range(channels)],
+                    "mon_gain": [bs.MON_GAIN[k % 4] for k in range(channels)],
+                    "mon_off_counts": [bs.MON_OFFSET_MV[k % 4] * 1000.0 / cfg.VMON_UV_PER_COUNT
+                                       for k in range(channels)],
+                    "dnl_codes": list(bs.ADC_DNL_CODES), "dnl_width": bs.ADC_DNL_WIDTH}
+            host.call("stream", code=code, scenario=spec)
         except emu.ChipError as err:
             self.close()
             raise TransportError(f"emu://: the emulated Pico did not start: {str(err).splitlines()[0]}") from None
@@ -489,13 +502,22 @@ def open_transport(url: str, hid_module=None) -> Transport:
                 check_calibration(*auto)
             except ValueError as e:
                 raise TransportError(f"bad device URL {url!r}: auto: {e}") from None
+        try:
+            load_ohm = int(_flag(q, "load", "0"))
+        except ValueError:
+            raise TransportError(f"bad device URL {url!r}: load takes a whole number of ohms, e.g. load=10000") from None
+        if load_ohm and not 100 <= load_ohm <= 1_000_000:
+            raise TransportError(f"bad device URL {url!r}: load={load_ohm} ohm out of range [100, 1000000]")
+        board = _flag(q, "board", "real")
+        if board not in ("real", "ideal"):
+            raise TransportError(f"bad device URL {url!r}: board is real (the parts' errors, default) or ideal")
         from .simrun import SimError, scenario_keys
 
         try:
             scenario_keys(scenario)
         except SimError as e:
             raise TransportError(f"bad device URL {url!r}: {e}") from None
-        return EmuTransport(scenario, channels, seed, auto)
+        return EmuTransport(scenario, channels, seed, auto, load_ohm, board == "ideal")
     raise TransportError(f"unknown device {url!r}: use {DEFAULT_URL} (the board over USB), sim://SCENARIO "
                          "(the simulator, e.g. sim://peel), emu://SCENARIO (the firmware on the emulated Pico) or "
                          "emu+tcp://HOST:PORT (an emulated Pico already served)")

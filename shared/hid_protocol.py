@@ -52,6 +52,7 @@ CMD_SET_MODE = const(0x14)
 CMD_KEEPALIVE = const(0x15)
 CMD_GET_INFO = const(0x16)
 CMD_SET_SKIN = const(0x17)  # MODE_FAST's skin model (Controller.set_skin)
+CMD_SET_VMON = const(0x18)  # one channel's voltage-monitor correction (steadytouch selftest), below
 CH_ALL = const(0xFF)
 
 # ---- what the device accepts (the host's command builders check the same) ----
@@ -131,6 +132,31 @@ RES_BAD_STATE = const(5)  # e.g. calibrate or set limits while armed
 RES_NOT_CALIBRATED = const(6)  # arm before calibrate
 RES_BAD_FORMAT = const(7)  # reserved bytes not zero
 RES_NO_FRAME_TIME = const(8)  # SET_SKIN: the model's work would not fit the frame (rate, t_max)
+RES_STORE_FAILED = const(9)  # SET_VMON: the board could not write its flash (nothing changed)
+
+# ---- the voltage monitor's correction (CMD_SET_VMON; firmware/vmon_cal.py) ----
+# measured mV = gain x true mV + offset; the firmware divides it out of every
+# pulse's peak. OUT: ch = one channel (not CH_ALL); O_ARG u8 op: VMON_APPLY (in
+# RAM until the next reset: the self-test measures the raw monitor with 0, 0)
+# or VMON_STORE (written to the board's flash first, then applied; read at
+# every boot); O_ARG + 4 i32 gain in ppm, O_ARG + 8 i32 offset in mV; gain 0
+# and offset 0 = uncorrected; O_ARG + 12 i32 the amplitude DAC's gain in ppm
+# (delivered / nominal current, found against a scope; 0 = nominal): the board
+# scales the DAC's full scale by it, so the current it reports, the Rp and the
+# hard limits count the current delivered. Refused while any channel is armed (a flash write
+# stalls the loop for tens of ms) with RES_BAD_STATE, outside the ranges with
+# RES_OUT_OF_RANGE, a failed flash write with RES_STORE_FAILED: nothing changes.
+VMON_APPLY = const(0)
+VMON_STORE = const(1)
+VMON_GAIN_PPM_MIN = const(900000)
+VMON_GAIN_PPM_MAX = const(1100000)
+VMON_OFFSET_MV_MIN = const(-2000)
+VMON_OFFSET_MV_MAX = const(2000)
+# what the board's flash held at boot (REP_INFO O_INFO_VMON, REP_CAL O_CAL_VMON_STATE)
+VMON_NONE = const(0)  # no correction file: every monitor uncorrected
+VMON_LOADED = const(1)  # the file was read and applied
+VMON_BAD = const(2)  # a file that cannot be read or is out of range: ignored, every monitor uncorrected
+VMON_STORED = const(3)  # SET_VMON ... VMON_STORE wrote the file since boot
 
 # ---- stop reasons (telemetry byte 3; 0 = stimulating) ----
 STOP_NONE = const(0)
@@ -187,15 +213,23 @@ O_INFO_RATE = const(41)
 O_INFO_KEEPALIVE = const(42)
 O_BOARD = const(44)  # 16 bytes ASCII, NUL padded
 BOARD_LEN = const(16)
+O_INFO_VMON = const(60)  # u8 VMON_NONE / LOADED / BAD / STORED
 # calibration report (REP_CAL)
 O_CAL_CH = const(12)
-O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured
+O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected,
+# 0x10 DAC gain corrected
 O_CAL_I0 = const(14)
 O_CAL_T0 = const(16)
 O_CAL_X = const(20)
 O_CAL_Y = const(24)
 O_CAL_RP0 = const(28)
 O_CAL_MODE = const(32)
+O_CAL_VMON_GAIN = const(36)  # i32 ppm applied to this channel's monitor (0: uncorrected)
+O_CAL_VMON_OFF = const(40)  # i32 mV
+O_CAL_VMON_STATE = const(44)  # u8, as O_INFO_VMON
+O_CAL_DAC_GAIN = const(48)  # i32 ppm applied to this channel's amplitude DAC (0: nominal)
+CAL_FLAG_VMON = const(0x08)
+CAL_FLAG_DAC = const(0x10)
 # OUT
 O_OUT_CMD = const(0)
 O_OUT_TAG = const(1)
@@ -340,6 +374,16 @@ def cmd_set_skin(b, ch, rs_ohm, beta_q16, cp_pf, tag=0):
     put_u16(b, O_ARG, rs_ohm)
     put_i32(b, O_ARG + 2, beta_q16)
     put_i32(b, O_ARG + 6, cp_pf)
+    seal(b)
+    return b
+
+
+def cmd_set_vmon(b, ch, op, gain_ppm, offset_mv, tag=0, dac_gain_ppm=0):
+    _cmd(b, CMD_SET_VMON, ch, tag)
+    b[O_ARG] = op
+    put_i32(b, O_ARG + 4, gain_ppm)
+    put_i32(b, O_ARG + 8, offset_mv)
+    put_i32(b, O_ARG + 12, dac_gain_ppm)
     seal(b)
     return b
 

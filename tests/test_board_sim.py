@@ -101,14 +101,7 @@ def test_monitor_gain_and_offset_error_per_channel_and_compliance_clipping():
     assert abs(b.last_i_ua[0] - cfg.COMPLIANCE_MV / 20.0) < 1e-6  # the current a clipped output really drives
 
 
-def test_the_stored_correction_takes_out_gain_and_offset():
-    g = [round(board_sim.MON_GAIN[k] * board_sim.DAC_GAIN[k] * 1e6) for k in (0, 1)]
-    b = board(noise=0.0, load_ohm=10000, correction=[(g[0], board_sim.MON_OFFSET_MV[0]), (g[1], board_sim.MON_OFFSET_MV[1])])
-    for ch in (0, 1):
-        for i in (800, 3000, 7000):
-            counts = _pulse_counts(b, ch, i, 300)
-            true = b.analog.delivered_ua(b.analog.code(i)) * 10.0 * 1000 / cfg.VMON_UV_PER_COUNT
-            assert abs(counts[-1] - true) <= 1.5, (ch, i, counts[-1], true)
+# the stored correction taking out gain and offset: tests/test_vmon_cal.py (stim._measure applies it)
 
 
 def test_correction_integers_stay_below_2_30_at_the_accepted_extremes():

@@ -75,3 +75,57 @@ def test_the_emulator_dying_is_disconnected_with_its_reason():
         with pytest.raises(Disconnected, match="the emulated Pico stopped"):
             while True:
                 t.read(1.0)
+
+
+@needs_emulator
+def test_selftest_on_the_emulated_pico_stores_the_correction_on_the_device_and_reads_it_back(capsys):
+    """The self-test over HID on the real firmware: the raw monitor measured (the correction off
+    in RAM), CMD_SET_VMON ... VMON_STORE written to the board's flash from the running loop, read
+    back with GET_INFO, the worst Rp error measured again with it (tests/chip/test_chip_vmon.py:
+    the stored file survives a reset)."""
+    assert main(["selftest", "--load-ohm", "10000", "--device", "emu://steady", "--pulses", "3"]) == 0
+    out = capsys.readouterr().out
+    back = re.search(r"read back: ch0 (\d+) ppm ([+-]\d+) mV, ch1 (\d+) ppm ([+-]\d+) mV", out)
+    assert back, out
+    bs = firmware_module("board_sim")
+    for k in (0, 1):  # the realistic board (emu:// default): board_sim's DAC x monitor gain and offset
+        row = next(ln for ln in out.splitlines() if ln.strip().startswith(f"{k} |"))
+        g = float(row.split("|")[2])
+        assert abs(g - bs.DAC_GAIN[k] * bs.MON_GAIN[k]) < 0.003, (k, g)
+        assert abs(int(back.group(1 + 2 * k)) / 1e6 - g) <= 0.00005  # what was stored is what was fitted
+        # the offset found: the monitor's, plus the peak search's noise bias (a few counts, > 0)
+        assert 0 < int(back.group(2 + 2 * k)) - bs.MON_OFFSET_MV[k] < 6 * 27 * bs.ADC_NOISE_COUNTS / 2
+    before = float(out.split("(was ")[1].split("%")[0])
+    after = float(out.split("with the stored correction: worst Rp error ")[1].split("%")[0])
+    assert after < before
+
+
+@pytest.mark.parametrize("url, words", [("emu://steady?load=5", "load=5 ohm out of range [100, 1000000]"),
+                                        ("emu://steady?board=perfect", "board is real (the parts' errors, default)")])
+def test_emu_url_load_and_board_are_checked_in_one_line(capsys, url, words):
+    assert main(["info", "--device", url]) == 2
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1
+
+
+@needs_emulator
+def test_the_ideal_switch_reaches_the_emulated_board():
+    """emu://...?board=ideal: the emulated analog path as before (exact gains, 1.5 counts of
+    noise); the default is the realistic one (board_sim's errors fed to the emulated ADC)."""
+    from steadytouch.device import Device
+    from steadytouch.protocol import Telemetry
+    from steadytouch.transport import open_transport
+
+    rps = {}
+    for board in ("ideal", "real"):
+        with open_transport(f"emu://steady?load=10000&board={board}&{AUTO}") as t:
+            d = Device(t)
+            got = []
+            with d.live(arm=0):
+                while len(got) < 15:
+                    r = d.read(5)
+                    if isinstance(r, Telemetry) and r.channel == 0 and r.i_ua:
+                        got.append(r.rp_ohm)
+            rps[board] = sorted(got)[len(got) // 2]
+    assert abs(rps["ideal"] - 10000) < 100  # the peak search's noise bias only
+    assert rps["real"] - 10000 > 150  # ch0: path gain 1.009 and +160 mV offset

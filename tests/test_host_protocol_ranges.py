@@ -203,8 +203,8 @@ def test_ack_result_and_report_type_are_checked():
     b[hp.O_CMD] = 0x99  # the device echoes an unknown command in its refusal: any byte
     b[hp.O_RESULT] = hp.RES_UNKNOWN_COMMAND
     assert decode(bytes(b)).result == hp.RES_UNKNOWN_COMMAND
-    b[hp.O_RESULT] = hp.RES_NO_FRAME_TIME + 1
-    with pytest.raises(ProtocolError, match="field result=9"):
+    b[hp.O_RESULT] = hp.RES_STORE_FAILED + 1  # the highest result code + 1
+    with pytest.raises(ProtocolError, match="field result=10"):
         decode(bytes(b))
     b[0] = 9
     with pytest.raises(ProtocolError, match="type=0x09"):

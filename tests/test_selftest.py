@@ -27,9 +27,9 @@ def test_fit_recovers_gain_and_offset_from_noisy_pulses():
     assert abs(f.gain - 1.013) < 0.002 and abs(f.offset_mv - 140) < 20
     assert f.worst_rp_err_after < f.worst_rp_err_before
     assert f.in_range()
-    assert st.correction_text([f]).splitlines()[2] == f"0 {f.gain_ppm} {round(f.offset_mv)}"
+    assert st.correction_text([f]).splitlines()[2] == f"0 {f.gain_ppm} {round(f.offset_mv)} 0"
     # the firmware reads back what the host writes
-    assert board_sim.parse_correction(st.correction_text([f]), 2) == [(f.gain_ppm, round(f.offset_mv)), None]
+    assert board_sim.parse_correction(st.correction_text([f]), 2) == [(f.gain_ppm, round(f.offset_mv), 0), None]
 
 
 def test_plan_keeps_every_point_below_85_percent_of_compliance_and_within_the_limits():
@@ -138,3 +138,36 @@ def test_host_and_firmware_agree_on_the_correction_file():
 
     assert (st.CAL_FILE, st.CAL_HEADER, st.GAIN_PPM_RANGE, st.OFFSET_MV_RANGE) == (
         vmon_cal.CAL_FILE, vmon_cal.CAL_HEADER, vmon_cal.CAL_GAIN_PPM, vmon_cal.CAL_OFFSET_MV)
+
+
+def test_selftest_with_a_scope_separates_the_dac_gain_from_the_monitors(tmp_path):
+    """--scope: each channel pulses the reference (4500 uA x 1000 us) and the builder types the
+    plateau the scope reads across the load; here the simulated board's true voltage (its DAC
+    gain x the code's nominal current x R). Stored: the monitor's own gain and the DAC's."""
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    code = st.SCOPE_PULSE[0] * 4096 // 10000
+    true_mv = [code * 10000 / 4096 * board_sim.DAC_GAIN[ch] * 10000 / 1000 for ch in (0, 1)]
+    p = subprocess.run([EXE, "selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "4",
+                        "--scope"], input="".join(f"{v:.1f}\n" for v in true_mv), capture_output=True, text=True,
+                       timeout=240, cwd=ROOT, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert p.stdout.count("the plateau across the load on the scope") == 2
+    stored = board_sim.parse_correction((tmp_path / "vmon_cal.txt").read_text(), 2)
+    for ch in (0, 1):
+        g_mon, off, g_dac = stored[ch]
+        assert abs(g_dac / 1e6 - board_sim.DAC_GAIN[ch]) < 2e-4, (ch, stored)
+        assert abs(g_mon / 1e6 - board_sim.MON_GAIN[ch]) < 0.003, (ch, stored)
+    assert "DAC gain ch0" in p.stdout and "after a reset, with the stored correction" in p.stdout
+    before = float(p.stdout.split("(was ")[1].split("%")[0])
+    after = float(p.stdout.split("with the stored correction: worst Rp error ")[1].split("%")[0])
+    assert after < before
+
+
+@pytest.mark.parametrize("reading, words", [("abc", "is not a number"), ("90000", "DAC gain of 2.0"), ("", "stdin")])
+def test_a_bad_scope_reading_is_one_line_and_stores_nothing(tmp_path, reading, words):
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    p = subprocess.run([EXE, "selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "2",
+                        "--channel", "0", "--scope"], input=reading + ("\n" if reading else ""), capture_output=True,
+                       text=True, timeout=240, cwd=ROOT, env=env)
+    assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert not (tmp_path / "vmon_cal.txt").exists()

@@ -268,7 +268,8 @@ class Chip {
   /** Amplitude of channel k: its DAC code (gain 1x) or, without a DAC, the PWM duty of its amplitude pin
    * (the RC filter's steady state). */
   amplitudeUa(k) {
-    if (this.wiring.dac) return (this.wiring.amp_full_ua * (this.dacCodes[k] ?? 0)) / 4096;
+    const a = this.world && this.world.analog; // the realistic board: the DAC + stimulator gain of channel k
+    if (this.wiring.dac) return (this.wiring.amp_full_ua * (this.dacCodes[k] ?? 0)) / 4096 * (a ? a.dac_gain[k] : 1);
     const pin = this.wiring.pwm_pins[k];
     const ch = this.mcu.pwm.channels[(pin >> 1) & 7];
     if (!(ch.csr & 1)) return 0;
@@ -309,12 +310,19 @@ class Chip {
       uv = i * (load.rs_ohm + load.rp_ohm * charge);
       uv = Math.min(uv, w.compliance_mv * 1000);
     }
+    const a = this.world && this.world.analog; // the realistic board (board_sim.AnalogPath's errors)
     let counts = uv / w.uv_per_count;
+    if (a) counts = counts * a.mon_gain[k] + a.mon_off_counts[k];
     if (this.world && this.world.noise) {
       const r = this.world.random;
       counts += (r() + r() + r() - 1.5) * 2 * this.world.noise; // board_sim's noise, seeded
     }
-    return Math.max(0, Math.min(4095, Math.round(counts)));
+    let c = Math.max(0, Math.min(4095, Math.round(counts)));
+    if (a) { // erratum RP2040-E11: a code within dnl_width/2 of 512, 1536, 2560, 3584 reads as that code
+      const h = Math.floor(a.dnl_width / 2);
+      for (const s of a.dnl_codes) if (Math.abs(c - s) <= h) c = s;
+    }
+    return c;
   }
 
   /** Electrodes that follow a scenario (emu://): spec = {keys, interp_h, electrode, noise_counts, seed}. */
@@ -327,6 +335,8 @@ class Chip {
       last: this.clock.nanos,
       noise: spec.noise_counts,
       random: rng(spec.seed),
+      load_ohm: spec.load_ohm || 0,
+      analog: spec.analog || null, // {dac_gain, mon_gain, mon_off_counts, dnl_codes, dnl_width} or null (ideal)
     };
   }
 
@@ -345,6 +355,10 @@ class Chip {
 
   /** A pulse starts on channel k: the electrode's Rp and tau for it become the channel's load. */
   electrodePulse(k, t, iUa) {
+    if (this.world.load_ohm) { // a resistor in place of the electrodes (emu://...?load=OHM, the self-test)
+      this.loads[k] = { rs_ohm: this.world.load_ohm, rp_ohm: 0, tau_us: 0 };
+      return;
+    }
     this.advanceScenario(t);
     const e = this.world.electrodes[k];
     if (e.pulse(iUa)) this.loads[k] = { rs_ohm: e.rs * 1000, rp_ohm: e.rp_skin * 1000, tau_us: e.tau };

@@ -1,0 +1,89 @@
+"""The monitor correction on the emulated chip, through the firmware's real entry point
+(`import main`: main_rp2, board_rp2.Board, USB HID): CMD_SET_VMON ... VMON_STORE
+writes /vmon_cal.txt to the board's flash from inside the running loop; after a
+reset (a new boot from that flash) board_rp2.load_vmon reads it and the telemetry's
+Rp is corrected; a corrupt file boots uncorrected, reported by GET_INFO, never a crash."""
+
+import pytest
+
+import hid_protocol as hp
+import sensation_core as sc
+from steadytouch.protocol import Ack, CalInfo, Commands, Info, Telemetry, decode
+
+from .harness import ChipError
+
+G_PPM, OFF_MV = 1050000, 200
+DAC_PPM = 1020000  # ch1: its DAC delivers 1.02 x nominal (what a scope would have shown)  # what the correction says the monitor does: reads 1.05 x true + 200 mV
+I_UA, T_US, R_OHM = 3000, 300, 10000
+
+
+def _run(chip, cfg, sent, ms=1200):
+    chip.wiring(cfg, cfg.N_CHANNELS)
+    for ch in range(cfg.N_CHANNELS):
+        chip.load(ch, rp_ohm=R_OHM)  # a resistor in place of the electrodes
+    chip.hid(send=sent)
+    with pytest.raises(ChipError, match="timeout"):  # the loop never returns to the REPL
+        chip.exec("import main", timeout_ms=ms)
+    return [decode(bytes.fromhex(x)) for _t, x in chip.hid()["reports"]]
+
+
+def _pulses(cmd):
+    return [cmd.set_mode(sc.MODE_OPEN_LOOP), cmd.calibrate(I_UA, T_US, 0, 0), cmd.arm()]
+
+
+def _rp(reps, ch):
+    rps = [t.rp_ohm for t in reps if isinstance(t, Telemetry) and t.channel == ch and t.i_ua]
+    assert len(rps) >= 10
+    return sorted(rps)[len(rps) // 2]
+
+
+def test_stored_on_the_chip_survives_a_reset_and_corrects_rp(chip_host, cfg, tmp_path):
+    cmd = Commands()
+    chip = chip_host.boot(chip_host.image)
+    sent = [cmd.get_info(), cmd.set_vmon(0, G_PPM, OFF_MV, store=True),
+            cmd.set_vmon(1, 0, 0, store=True, dac_gain_ppm=DAC_PPM), cmd.get_info(0), cmd.get_info(1), cmd.get_info()]
+    reps = _run(chip, cfg, sent, ms=800)
+    acks = [r for r in reps if isinstance(r, Ack)]
+    assert [(a.command, a.result) for a in acks] == [(hp.CMD_SET_VMON, hp.RES_OK)] * 2
+    info = [r for r in reps if isinstance(r, Info)]
+    cal = [r for r in reps if isinstance(r, CalInfo)]
+    assert info[0].vmon_state == hp.VMON_NONE and info[1].vmon_state == hp.VMON_STORED
+    assert (cal[0].vmon_gain_ppm, cal[0].vmon_offset_mv, cal[0].flags & hp.CAL_FLAG_VMON) == (G_PPM, OFF_MV, 8)
+    assert (cal[1].vmon_gain_ppm, cal[1].flags & hp.CAL_FLAG_VMON) == (0, 0)
+    assert (cal[1].dac_gain_ppm, cal[1].flags & hp.CAL_FLAG_DAC, cal[0].dac_gain_ppm) == (DAC_PPM, hp.CAL_FLAG_DAC, 0)
+    fs = tmp_path / "fs.bin"
+    chip.save_fs(fs)
+
+    # a reset: the board boots from the flash it wrote
+    chip = chip_host.boot(fs)
+    assert "steadytouch monitor correction v1\n" in chip.exec("print(open('/vmon_cal.txt').read())")
+    reps = _run(chip, cfg, [cmd.get_info(), cmd.get_info(0)] + _pulses(cmd))
+    info = [r for r in reps if isinstance(r, Info)]
+    cal = [r for r in reps if isinstance(r, CalInfo)]
+    assert info[0].vmon_state == hp.VMON_LOADED and (cal[0].vmon_gain_ppm, cal[0].vmon_offset_mv) == (G_PPM, OFF_MV)
+    # the emulated monitor is exact (10 kohm reads 10 kohm within its noise): the correction
+    # takes 200 mV out and divides by 1.05, as the firmware must
+    want = (R_OHM * I_UA / 1000 - OFF_MV) / (G_PPM / 1e6) * 1000 / I_UA
+    assert abs(_rp(reps, 0) - want) <= 25, (_rp(reps, 0), want)
+    # ch1's DAC told it delivers 1.02 x nominal: the code for 3000 uA is 3000 x 4096 / 10200 and the
+    # current reported (and counted against the hard limits) is that code's delivered current
+    code1 = I_UA * 4096 // (cfg.AMP_UA_AT_FULL * DAC_PPM // 1000000)
+    assert chip.take()["dac_codes"][1] == code1
+    i1 = {t.i_ua for t in reps if isinstance(t, Telemetry) and t.channel == 1 and t.i_ua}
+    assert i1 == {(code1 * cfg.AMP_UA_AT_FULL * DAC_PPM // 1000000 + 2048) // 4096}
+    # the emulated stage is nominal (it delivers code x 10000 / 4096): Rp reads low by the told gain
+    assert abs(_rp(reps, 1) - R_OHM * code1 * cfg.AMP_UA_AT_FULL / 4096 / min(i1)) <= 25
+    assert all(t.stop == hp.STOP_NONE for t in reps if isinstance(t, Telemetry) and t.i_ua)
+
+
+@pytest.mark.parametrize("content", [b"garbage\xff\xfe", b"steadytouch monitor correction v1\n0 2000000 0\n"])
+def test_a_corrupt_file_boots_uncorrected_and_says_so(chip_host, cfg, content):
+    cmd = Commands()
+    chip = chip_host.boot(chip_host.image)
+    chip.put(content, "/vmon_cal.txt")
+    reps = _run(chip, cfg, [cmd.get_info(), cmd.get_info(0)] + _pulses(cmd))
+    info = [r for r in reps if isinstance(r, Info)]
+    cal = [r for r in reps if isinstance(r, CalInfo)]
+    assert info[0].vmon_state == hp.VMON_BAD and cal[0].vmon_state == hp.VMON_BAD
+    assert (cal[0].vmon_gain_ppm, cal[0].flags & hp.CAL_FLAG_VMON) == (0, 0)
+    assert abs(_rp(reps, 0) - R_OHM) <= 25 and abs(_rp(reps, 1) - R_OHM) <= 25

@@ -1,0 +1,250 @@
+"""The voltage monitor's correction on the device (firmware/vmon_cal.py, stim._measure,
+CMD_SET_VMON): applied to every pulse's peak inside the heap-locked frame, set and
+stored by command (checked before anything changes), read back by GET_INFO, read
+from the board's flash at boot (a missing or corrupt file: uncorrected, reported).
+Runs the firmware in the MicroPython VM on the simulated board (the realistic one)."""
+
+import sys
+
+import pytest
+
+import hid_protocol as hp
+from conftest import FIRMWARE
+from fw_harness import run_fw
+from steadytouch.protocol import Ack, CalInfo, Commands, CommandError, Info, Telemetry
+
+sys.path.insert(0, str(FIRMWARE))
+import board_sim  # noqa: E402
+import vmon_cal  # noqa: E402
+
+G_PPM = [round(board_sim.MON_GAIN[k] * board_sim.DAC_GAIN[k] * 1e6) for k in (0, 1)]
+
+# open-loop pulses of 3000 uA x 300 us on a 10 kohm load, noise off: Rp per channel
+PULSES = """
+def rps(s, frames=6):
+    s.board.usb.sent.clear()
+    b = bytearray(64)
+    assert apply(s, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)) == 0
+    assert apply(s, hp.cmd_calibrate(b, hp.CH_ALL, 3000, 300, 0, 0)) == 0
+    assert apply(s, hp.cmd_arm(b, hp.CH_ALL)) == 0
+    s.run(frames)
+    assert apply(s, hp.cmd_disarm(b, hp.CH_ALL)) == 0
+    out = {}
+    for r in s.board.usb.sent:
+        if r[0] == hp.REP_TELEMETRY and hp.get_u16(r, hp.O_I):
+            out[r[1]] = hp.get_i32(r, hp.O_RP)
+    s.board.usb.sent.clear()
+    return [out[0], out[1]]
+
+def locked(s, rep):
+    # as _serve_commands handles a command: inside the heap-locked section
+    r = bytearray(rep)
+    now = s.clock.ticks_us()
+    s._enter()
+    try:
+        return s.handle(r, now)
+    finally:
+        s._leave()
+
+def board(correction=None, flash_dir=None):
+    clock = VirtualClock(0)
+    usb = MemoryUSB(True)
+    bd = SimBoard(cfg, clock, sim_electrode.scenario("steady"), 2, 1, usb, noise_counts=0.0, load_ohm=10000,
+                  correction=correction, flash_dir=flash_dir)
+    return stim.Stimulator(bd, clock, cfg, 2, 50, 0)
+"""
+
+
+def test_the_correction_takes_out_the_path_gain_and_offset_in_the_heap_locked_frame():
+    corr = [(G_PPM[0], board_sim.MON_OFFSET_MV[0]), (G_PPM[1], board_sim.MON_OFFSET_MV[1])]
+    _, res, _ = run_fw(PULSES + f"""
+result(raw=rps(board()), corrected=rps(board({corr!r})))
+""")
+    raw, corrected = res[0]["raw"], res[0]["corrected"]
+    # the DAC delivers code x LSB x its gain, the firmware divides by code x LSB: the load reads
+    # R x g_dac x g_mon + offset / I uncorrected, R within a count (27 mV / 3 mA = 9 ohm) corrected
+    for ch in (0, 1):
+        want_raw = 10000 * G_PPM[ch] / 1e6 + board_sim.MON_OFFSET_MV[ch] * 1000 / 2999
+        assert abs(raw[ch] - want_raw) < 30, (ch, raw, want_raw)
+        assert abs(corrected[ch] - 10000) <= 20, (ch, corrected)
+        assert abs(raw[ch] - 10000) > 80  # ch0 +2.5 %, ch1 -0.9 % uncorrected
+
+
+def test_set_vmon_checks_everything_before_anything_changes_and_get_info_reads_it_back(tmp_path):
+    ok = hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, 150)
+    cases = {
+        "all": (hp.cmd_set_vmon(bytearray(64), hp.CH_ALL, hp.VMON_APPLY, 1012000, 150), hp.RES_BAD_CHANNEL, hp.O_OUT_CH),
+        "ch5": (hp.cmd_set_vmon(bytearray(64), 5, hp.VMON_APPLY, 1012000, 150), hp.RES_BAD_CHANNEL, hp.O_OUT_CH),
+        "op": (hp.cmd_set_vmon(bytearray(64), 0, 2, 1012000, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG),
+        "gain_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 899999, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "gain_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1100001, 0), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "gain_0": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 0, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "off_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, 2001), hp.RES_OUT_OF_RANGE, hp.O_ARG + 8),
+        "off_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, -2001), hp.RES_OUT_OF_RANGE,
+                   hp.O_ARG + 8),
+        "huge": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1 << 29, 0), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "store_no_flash": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_STORE, 1012000, 150), hp.RES_STORE_FAILED, 0),
+    }
+    fmt = bytearray(ok)
+    fmt[hp.O_ARG + 1] = 1
+    hp.seal(fmt)
+    cases["reserved"] = (fmt, hp.RES_BAD_FORMAT, hp.O_ARG + 1)
+    crc = bytearray(ok)
+    crc[hp.O_ARG + 4] ^= 1
+    cases["crc"] = (crc, hp.RES_BAD_CRC, hp.O_CRC)
+    body = PULSES + """
+s = board()
+b = bytearray(64)
+before = rps(s)
+out = {}
+"""
+    for name, (rep, _, _) in cases.items():
+        body += f"out[{name!r}] = (locked(s, {bytes(rep)!r}), s.tx[hp.O_DETAIL])\n"
+    body += f"""
+armed = s.handle(bytearray(hp.cmd_calibrate(b, hp.CH_ALL, 3000, 300, 0, 0)), 0), s.handle(bytearray(hp.cmd_arm(b, 1)), 0)
+out["armed"] = (apply(s, {bytes(ok)!r}), s.tx[hp.O_DETAIL])
+apply(s, hp.cmd_disarm(b, hp.CH_ALL))
+after_refusals = rps(s)
+s.board.usb.sent.clear()
+apply(s, hp.cmd_get_info(b, 0, 0)); s.board.send(s.tx)
+out["ok"] = (apply(s, {bytes(ok)!r}), 0)
+apply(s, hp.cmd_get_info(b, 0, 0)); s.board.send(s.tx)
+apply(s, hp.cmd_get_info(b, 0, 1)); s.board.send(s.tx)
+apply(s, hp.cmd_get_info(b, 0)); s.board.send(s.tx)
+dump(s.board.usb)
+applied = rps(s)
+out["clear"] = (apply(s, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0)), 0)
+cleared = rps(s)
+result(out=out, before=before, after_refusals=after_refusals, applied=applied, cleared=cleared)
+"""
+    reps, res, _ = run_fw(body)
+    r = res[0]
+    for name, (_, result, detail) in cases.items():
+        assert r["out"][name] == [result, detail], name
+    assert r["out"]["armed"] == [hp.RES_BAD_STATE, hp.O_OUT_CH]
+    assert r["out"]["ok"] == [hp.RES_OK, 0] and r["out"]["clear"] == [hp.RES_OK, 0]
+    assert r["after_refusals"] == r["before"]  # nothing a refusal could change did
+    cal = [x for x in reps if isinstance(x, CalInfo)]
+    info = [x for x in reps if isinstance(x, Info)]
+    assert (cal[0].vmon_gain_ppm, cal[0].vmon_offset_mv, cal[0].flags & hp.CAL_FLAG_VMON) == (0, 0, 0)
+    assert (cal[1].vmon_gain_ppm, cal[1].vmon_offset_mv, cal[1].flags & hp.CAL_FLAG_VMON) == (1012000, 150, 8)
+    assert (cal[2].channel, cal[2].vmon_gain_ppm, cal[2].flags & hp.CAL_FLAG_VMON) == (1, 0, 0)
+    assert info[0].vmon_state == hp.VMON_NONE and cal[1].vmon_state == hp.VMON_NONE  # applied, not stored
+    # ch0 now divides by 1.012 after taking 150 mV out; ch1 untouched; cleared: as before
+    assert abs(r["applied"][0] - (r["before"][0] - 150 * 1000 / 2999) / 1.012) <= 12
+    assert r["applied"][1] == r["before"][1] and r["cleared"] == r["before"]
+
+
+def test_stored_survives_a_reset_a_missing_or_corrupt_file_boots_uncorrected(tmp_path):
+    flash = str(tmp_path)
+    corr = (G_PPM[0], board_sim.MON_OFFSET_MV[0])
+    body = PULSES + f"""
+b = bytearray(64)
+s = board(flash_dir={flash!r})
+state0 = s.vmon_state
+raw = rps(s)
+r1 = locked(s, hp.cmd_set_vmon(b, 0, hp.VMON_STORE, {corr[0]}, {corr[1]}))
+r2 = locked(s, hp.cmd_set_vmon(b, 1, hp.VMON_APPLY, 1010000, 0))  # RAM only: not in the file
+state1 = s.vmon_state
+s2 = board(flash_dir={flash!r})  # a reset: a new board reads its flash
+result(state0=state0, state1=state1, r=[r1, r2], raw=raw, after_reset=rps(s2), state2=s2.vmon_state,
+       text=open({flash!r} + "/vmon_cal.txt").read())
+"""
+    _, res, _ = run_fw(body)
+    r = res[0]
+    assert r["state0"] == hp.VMON_NONE and r["state1"] == hp.VMON_STORED and r["state2"] == hp.VMON_LOADED
+    assert r["r"] == [hp.RES_OK, hp.RES_OK]
+    assert vmon_cal.parse(r["text"], 2) == [corr + (0,), None]
+    assert abs(r["after_reset"][0] - 10000) <= 20 and r["after_reset"][1] == r["raw"][1]
+    assert not (tmp_path / "vmon_cal.txt.tmp").exists()
+    for bad in ("garbage\n", vmon_cal.CAL_HEADER + "\n0 5000000 0\n", vmon_cal.CAL_HEADER + "\n0 1000000\n",
+                "\xff\xfe\x00"):
+        (tmp_path / "vmon_cal.txt").write_bytes(bad.encode("latin-1"))
+        _, res, _ = run_fw(PULSES + f"""
+s = board(flash_dir={flash!r})
+result(state=s.vmon_state, rp=rps(s))
+""")
+        assert res[0]["state"] == hp.VMON_BAD and res[0]["rp"] == r["raw"], bad
+
+
+def test_boot_load_and_store_on_cpython(tmp_path):
+    p = str(tmp_path / "vmon_cal.txt")
+    assert vmon_cal.boot_load(p, 2) == ([None, None], hp.VMON_NONE)
+    assert vmon_cal.store(p, [None, (1010000, -40, 994000)])
+    assert vmon_cal.boot_load(p, 2) == ([None, (1010000, -40, 994000)], hp.VMON_LOADED)
+    (tmp_path / "old.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -40\n")  # a file without the DAC column
+    assert vmon_cal.boot_load(str(tmp_path / "old.txt"), 2) == ([None, (1010000, -40, 0)], hp.VMON_LOADED)
+    assert vmon_cal.boot_load(p, 1) == ([None], hp.VMON_LOADED)  # a channel the board does not have: ignored
+    assert not vmon_cal.store(str(tmp_path / "no" / "dir.txt"), [None])
+
+
+def test_host_command_checks_the_same_ranges():
+    c = Commands()
+    assert c.set_vmon(1, 1012000, -150, store=True)[hp.O_ARG] == hp.VMON_STORE
+    assert c.set_vmon(0, 0, 0)[hp.O_ARG] == hp.VMON_APPLY
+    for args, words in (((hp.CH_ALL, 1012000, 0), "one channel"), ((0, 1200000, 0), "gain_ppm"),
+                        ((0, 1000000, 3000), "offset_mv"), ((0, 0, 5), "gain_ppm")):
+        with pytest.raises(CommandError, match=words):
+            c.set_vmon(*args)
+    assert isinstance(Ack, type) and isinstance(Telemetry, type)
+
+
+def test_the_dac_gain_makes_the_reported_current_the_delivered_one():
+    """With the DAC's gain stored the board scales its full scale: the current the firmware
+    reports (and counts against the hard limits) is the physical one within a DAC step, and
+    the monitor's own gain then makes Rp exact."""
+    corr = [(round(board_sim.MON_GAIN[k] * 1e6), board_sim.MON_OFFSET_MV[k], round(board_sim.DAC_GAIN[k] * 1e6))
+            for k in (0, 1)]
+    _, res, _ = run_fw(PULSES + f"""
+s = board({corr!r})
+rp = rps(s)
+b = s.board
+out = []
+for ch in (0, 1):
+    got = b.set_amplitude(ch, 3000)
+    out.append([got, b.analog.physical_ua(ch, b.code[ch])])
+r = locked(s, hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 0, 0, 0, 1100001))
+result(rp=rp, out=out, r=[r, s.tx[hp.O_DETAIL]], dac=s.chans[0].vmon_dac)
+""")
+    r = res[0]
+    for ch in (0, 1):
+        got, phys = r["out"][ch]
+        assert 0 <= phys - got < 1.0 + 10000 / 4096 * 0.001, (ch, got, phys)  # whole uA, rounded down
+        assert abs(r["rp"][ch] - 10000) <= 20
+    assert r["r"] == [hp.RES_OUT_OF_RANGE, hp.O_ARG + 12] and r["dac"] == corr[0][2]  # refused: unchanged
+
+
+def test_dac_set_gain_scales_the_full_scale_within_small_ints():
+    import dac_mcp4822 as dac
+
+    class Bus:
+        def write(self, b):
+            pass
+
+    d = dac.MCP4822(Bus(), [lambda v=None: None], 2, dac.FULL_UA_MAX)
+    for ppm in (dac.GAIN_PPM_MIN, 999990, 1000000, 1000010, dac.GAIN_PPM_MAX):
+        d.set_gain(1, ppm)
+        assert abs(d.full[1] - dac.FULL_UA_MAX * ppm / 1e6) <= 1
+        assert abs(dac.FULL_UA_MAX * ((ppm - 1000000) // 10)) + 50000 < 2**30
+        assert 4096 * d.full[1] < 2**30
+    d.set_gain(1, 0)
+    assert d.full == [dac.FULL_UA_MAX] * 2
+    with pytest.raises(ValueError):
+        d.set_gain(0, 1100001)
+
+
+def test_info_shows_the_stored_correction_and_a_corrupt_file(tmp_path):
+    import os
+    import subprocess
+    from pathlib import Path
+
+    exe = str(Path(sys.executable).parent / "steadytouch")
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -30 995000\n")
+    p = subprocess.run([exe, "info", "--device", "sim://steady"], capture_output=True, text=True, env=env, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert "ch1: monitor gain 1.0100 offset -30 mV, DAC gain 0.9950" in p.stdout and "ch0: monitor" not in p.stdout
+    assert "correction: stored correction loaded at boot" in p.stdout
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -30 995\n")  # DAC gain out of range
+    p = subprocess.run([exe, "info", "--device", "sim://steady"], capture_output=True, text=True, env=env, timeout=60)
+    assert p.returncode == 0 and "monitor gain" not in p.stdout and "ignored (monitor uncorrected)" in p.stdout
