@@ -96,7 +96,12 @@ def scenario_keys(name: str):
 
 def die_with_parent():
     """preexec_fn for the VM child: the kernel kills it when this process dies
-    (Linux PR_SET_PDEATHSIG; elsewhere the child's --exit-on-eof covers it)."""
+    (Linux PR_SET_PDEATHSIG; elsewhere the child's --exit-on-eof covers it). It runs in a
+    process group of its own: a Ctrl-C typed in the terminal interrupts the host only, which
+    then disarms the simulated device (a Ctrl-C reaching the child too killed it before the
+    DISARM could be acknowledged)."""
+    if hasattr(os, "setpgid"):
+        os.setpgid(0, 0)
     if not sys.platform.startswith("linux"):
         return
     try:
