@@ -96,20 +96,32 @@ def cmd_sim(a) -> int:
 
 
 def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
+    from .progress import Progress
+
     runs, files = {}, []
     stem = Path(a.scenario).stem
     for m in modes:
         t0 = time.perf_counter()
         say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
-        def show(t_s, m=m, t0=t0):
-            if sys.stderr.isatty():
-                el = time.perf_counter() - t0
-                left = f", about {el * (duration - t_s) / t_s:.0f} s left" if t_s > 0 else ""
-                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated{left}   ", end="", file=sys.stderr, flush=True)
+        prog = Progress(f"sim {m}")
 
-        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board)
-        if sys.stderr.isatty():
-            print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
+        def show(t_s, prog=prog):
+            prog.work(t_s, duration)
+            prog.tick(f"{t_s:.1f} of {duration:.0f} s simulated")
+
+        def seen(reps, prog=prog):
+            for r in reps:
+                if isinstance(r, Telemetry):
+                    prog.add(r)
+
+        try:
+            reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board,
+                                on_reports=seen)
+        except KeyboardInterrupt:  # no file of an unfinished run is written (Outputs); say how far it got
+            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file written "
+                             "(sim writes its files when every run is complete)"))
+            raise
+        prog.clear()
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
         if bad:
             raise SimError(f"the device refused: {bad[0].words()}")
@@ -118,8 +130,11 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         write_recording(outputs.path(path), tel, sim_meta(a, cal, m))
         runs[m] = tel
         files.append(path)
-        stops = sorted({STOP_WORDS.get(t.stop, str(t.stop)) for t in tel if t.stop != hp.STOP_NONE})
-        say(f"  {len(tel)} pulses in {time.perf_counter() - t0:.1f} s -> {path}" + (f"; stops: {', '.join(stops)}" if stops else ""))
+        done = Progress(f"  sim {m}", clock=prog.clock)  # the summary, from every report of the run
+        done.t0 = prog.t0
+        for t in tel:
+            done.add(t)
+        say(done.summary(f"{duration:.0f} s simulated -> {path}"))
         if a.lsl:
             from .lsl.link import stream_run
 
@@ -228,10 +243,45 @@ def cmd_arm(a) -> int:
     return 1 if any(w not in (hp.STOP_DISARMED, hp.STOP_NONE) for w in stopped.values()) else 0
 
 
+def _guided_session_class():
+    from .session import T_STEPS_US, Session
+
+    class GuidedSession(Session):
+        """The guided session with its progress: steps matched of all (per level each T step after the
+        reference, and the re-check), the points matched so far (kept if the session is cut short)."""
+
+        def __init__(self, dev, responder, prog, n_levels, **kw):
+            super().__init__(dev, responder, **kw)
+            self.prog, self.level = prog, ""
+            self.steps, self.total = 0, n_levels * len(T_STEPS_US)
+            self.rows: list[dict] = []
+            prog.work(0, self.total)
+
+        def where(self) -> str:
+            return f"{self.steps} of {self.total} steps matched" + (f", level {self.level}" if self.level else "")
+
+        def match(self, ref, t_us, i_start, level):
+            self.level = level
+            got = super().match(ref, t_us, i_start, level)
+            self.steps += 1
+            self.prog.work(self.steps, self.total)
+            return got
+
+        def _row(self, level, p):
+            row = super()._row(level, p)
+            self.rows.append(row)
+            return row
+
+    return GuidedSession
+
+
 def cmd_calibrate_interactive(a) -> int:
     from . import fit as F
     from .participant import write_rows
-    from .session import KeyboardResponder, Session, SimResponder, Stopped
+    from .progress import Progress, Watch
+    from .session import KeyboardResponder, SimResponder, Stopped
+
+    _GuidedSession = _guided_session_class()
 
     _finite("present_s", a.present_s, 0.05, 60)
     for k in ("weak_ua", "strong_ua"):
@@ -239,16 +289,30 @@ def cmd_calibrate_interactive(a) -> int:
             raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
+    levels = {"weak": a.weak_ua, "strong": a.strong_ua}
+    prog = Progress("calibrate")
     with open_transport(a.device) as t:
         d = Device(t)
-        s = Session(d, responder, channel=a.channel or 0, present_s=a.present_s)
+        s = _GuidedSession(Watch(d, prog, lambda: s.where()), responder, prog, len(levels), channel=a.channel or 0,
+                           present_s=a.present_s, log=lambda text: (prog.clear(), say(text)))
         say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
         try:
             with d.live():  # keep-alive while presenting; DISARM however the session ends
-                res = s.run({"weak": a.weak_ua, "strong": a.strong_ua})
-        except Stopped:
-            say("stopped: the device is disarmed; nothing was sent")
-            return 1
+                res = s.run(levels)
+        except (Stopped, KeyboardInterrupt) as e:  # q, Ctrl-C, SIGTERM: the matches made so far are kept
+            kept = ""
+            if s.rows:
+                out.mkdir(parents=True, exist_ok=True)
+                with Outputs() as o:
+                    write_rows(o.path(out / "session-partial.csv"), s.rows)
+                kept = f"; the {len(s.rows)} points matched so far -> {out / 'session-partial.csv'} (not fitted)"
+            say(prog.summary(f"{s.where()}; {'stopped' if isinstance(e, Stopped) else 'interrupted'}, "
+                             f"nothing was sent{kept}"))
+            say(_disarm_words(d, a.device))
+            if isinstance(e, Stopped):
+                return 1
+            raise
+        say(prog.summary(s.where()))
         out.mkdir(parents=True, exist_ok=True)
         data = out / "session.csv"
         with Outputs() as o:  # the measured session is kept even if the fit fails
@@ -710,10 +774,23 @@ def cmd_synth(a) -> int:
     return 0
 
 
+def _interruptible(prog, run, d: Device, url: str, kept: str):
+    """run(); on Ctrl-C or SIGTERM the summary so far, what is kept and whether the device
+    acknowledged its DISARM, then the interruption goes on (exit 130 / 143)."""
+    try:
+        return run()
+    except KeyboardInterrupt:
+        say(prog.summary(f"interrupted: {kept}"))
+        say(_disarm_words(d, url))
+        raise
+
+
 def cmd_selftest(a) -> int:
     """Self-test and monitor correction on a dummy load (host/selftest.py)."""
     import os
     import tempfile
+
+    from .progress import Progress, Watch
 
     from . import selftest as st
     from .simrun import sim_flash_dir
@@ -740,7 +817,10 @@ def cmd_selftest(a) -> int:
                               info.q_max_pc, info.compliance_mv)
                 say(f"{a.device}: {len(pts)} test points x {a.pulses} pulses on {len(chans)} channel(s), "
                     f"{a.load_ohm} ohm load ...")
-                rows = st.measure(d, pts, chans, a.pulses)
+                prog = Progress("selftest", total_pulses=len(pts) * a.pulses * len(chans))
+                rows = _interruptible(prog, lambda: st.measure(Watch(d, prog), pts, chans, a.pulses), d, a.device,
+                                      "nothing stored")
+                say(prog.summary())
         finally:
             if sim:
                 if old_env is None:
@@ -759,7 +839,10 @@ def cmd_selftest(a) -> int:
         with open_transport(url) as t:  # a reset: the board reads it at boot
             d = Device(t)
             check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
-            rows = st.measure(d, check, chans, a.pulses)
+            prog = Progress("selftest check", total_pulses=len(check) * a.pulses * len(chans))
+            rows = _interruptible(prog, lambda: st.measure(Watch(d, prog), check, chans, a.pulses), d, url,
+                                  f"the correction is stored in {path}")
+            say(prog.summary())
         after = max(float(max(abs(v * 1000.0 / i / a.load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
         say(f"after a reset, with the stored correction: worst Rp error {after:.2%} (was {worst:.2%})")
     else:
