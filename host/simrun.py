@@ -195,12 +195,12 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
             tail = (tail + chunk)[-4 * 66:]  # enough to hold one whole framed report
             now = time.monotonic()
             if progress and now - last > 0.2:
-                last = now
-                if on_reports is not None:  # whole reports since the last call (a report may span chunks)
-                    got, pending = _whole_reports(pending)
-                    on_reports([decode(r) for r in got])
                 reps = split_stdio_stream(tail)
-                if reps:
+                if reps:  # (not yet a whole report: at the next chunk)
+                    last = now
+                    if on_reports is not None:  # whole reports since the last call (a report may span chunks)
+                        got, pending = _whole_reports(pending)
+                        on_reports([decode(r) for r in got])
                     progress(int.from_bytes(reps[-1][8:12], "little") / 1e6)  # the report's time_us
             if now - t_start > timeout:
                 raise SimError(f"the simulated run took longer than {timeout:.0f} s")
