@@ -9,6 +9,8 @@ import sys
 import uuid
 import xml.etree.ElementTree as ET
 
+import pytest
+
 import hid_protocol as hp
 
 from steadytouch.lsl.streams import STOP_REASONS, unit
@@ -156,3 +158,46 @@ def test_monitor_lsl_streams_and_marks_its_disarm(lsl):
     assert all(b >= a - 1e-3 for a, b in zip(stamps, stamps[1:]))  # in order (two channels share a frame's time)
     assert [m for m, _ in markers][-2:][0] == "disarm ch=all"
     assert "monitor:" in out and "disarmed" in out
+
+
+def test_record_lsl_on_the_emulated_chip(lsl, tmp_path):
+    """`record --lsl` against emu:// (the rp2 firmware on the emulated Pico, about 30-50 s here):
+    the streams carry the real firmware's reports: every label, unit and metadata field, every
+    sample equal to its CSV row, the arm and disarm markers, and the timestamps on the device's
+    own time line (its frames' spacing, never the arrival times). What this cannot show is the
+    mapping onto the host's clock: the emulated chip's clock runs at a fraction of real time
+    (about a third here, varying with the machine's load), so 6 s of recording hold under 3 s
+    of device time, too short for the drift fit, and its residual would measure the emulator,
+    not a crystal (docs/lab.md, "The clock")."""
+    from steadytouch.emu import EMULATOR, NO_EMULATOR
+
+    if not (EMULATOR / "firmware.uf2").exists():
+        pytest.skip(NO_EMULATOR)
+    url = f"emu://steady?channels=1&auto={AUTO}"
+    csv = tmp_path / "emu.csv"
+    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "120", "--arm", "--seconds", "6", "--device", url)
+    try:
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p, max_s=150)
+        out, err = p.communicate(timeout=60)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 0, err
+    meta, rows = read_recording(csv)
+    assert meta["serial"] == url and meta["board"] == "pico-stmisola"
+    _check_layout_and_meta(xml, meta, 1)
+    by_seq = {r["seq"]: [r[c] for c in COLUMNS] for r in rows}
+    assert len(samples) >= 50
+    assert all(by_seq[s[0]] == s for s in samples)
+    assert [s[0] for s in samples] == [r["seq"] for r in rows if r["seq"] >= samples[0][0]]
+    texts = [m for m, _ in markers]
+    assert texts.index("arm ch=all") < texts.index("disarm ch=all") and texts[-1].startswith("clock ")
+    t_col = COLUMNS.index("time_us")
+    dev = [s[t_col] for s in samples]
+    spacing = [(t2 - t1) / (((d2 - d1) % (1 << 30)) / 1e6) for d1, d2, t1, t2 in zip(dev, dev[1:], stamps, stamps[1:])]
+    print(f"emu: {len(samples)} samples; LSL seconds per device second {min(spacing):.3f}..{max(spacing):.3f}; "
+          f"{texts[-1]}")
+    s = sorted(spacing[10:])
+    assert s[-1] - s[0] < 0.05 * s[len(s) // 2]  # one straight line: the arrival jitter does not reach them
+    late_max_us = int(texts[-1].split("arrival_late_us_max=")[1].split()[0])
+    assert late_max_us > 100_000  # while the arrivals were far off that line (the emulator's slow clock)
+    assert "disarmed" in out
