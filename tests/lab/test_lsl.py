@@ -198,6 +198,4 @@ def test_record_lsl_on_the_emulated_chip(lsl, tmp_path):
           f"{texts[-1]}")
     s = sorted(spacing[10:])
     assert s[-1] - s[0] < 0.05 * s[len(s) // 2]  # one straight line: the arrival jitter does not reach them
-    late_max_us = int(texts[-1].split("arrival_late_us_max=")[1].split()[0])
-    assert late_max_us > 100_000  # while the arrivals were far off that line (the emulator's slow clock)
     assert "disarmed" in out
