@@ -556,6 +556,8 @@ def cmd_monitor(a) -> int:
                     now = time.monotonic()
                     if now >= next_draw:
                         next_draw = now + 0.1  # 10 screens a second
+                        if live:
+                            d.feed()  # a redraw can take most of the keep-alive timeout on a busy machine
                         if live and not live.draw():
                             break  # the window was closed
                         screen = state.render(a.device, d.lost)

@@ -123,8 +123,9 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
     try:
         env = dict(os.environ, DISPLAY=display, MPLBACKEND="TkAgg")
         exe = Path(sys.executable).parent / "steadytouch"
+        # 3000 frames: 60 s of device time (steady alone is 10 s; on a busy machine the screenshots can take longer)
         mon = subprocess.Popen([str(exe), "monitor", "--plot", "--seconds", "25", "--device",
-                                f"sim://steady?channels=4&auto={AUTO}"], env=env, stdout=subprocess.PIPE,
+                                f"sim://steady?channels=4&frames=3000&auto={AUTO}"], env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
         missing, img, last_error, end = None, None, None, time.monotonic() + 20
         while time.monotonic() < end and mon.poll() is None:

@@ -47,12 +47,15 @@ def _check_layout_and_meta(xml: str, meta: dict, n_channels: int):
         assert lim.findtext(k) == str(meta[k]), k
     cal = d.find("calibration").findall("channel")
     assert [int(c.findtext("index")) for c in cal] == list(range(n_channels))
+    for k in ("hard_i_max_ua", "hard_t_max_us", "hard_q_max_pc", "compliance_mv"):
+        if k in meta:  # a device's (record, monitor); sim's metadata has the soft limits only
+            assert lim.findtext(k) == str(meta[k]), k
     for c in cal:
         ch = c.findtext("index")
-        for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc", "rp0_ohm"):
-            want = meta.get(f"ch{ch}_{k}", meta.get(k))
-            if want is not None:
-                assert c.findtext(k) == str(want), (ch, k)
+        for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"):  # every one present and equal
+            assert c.findtext(k) == str(meta.get(f"ch{ch}_{k}", meta.get(k))), (ch, k)
+        rp0 = meta.get(f"ch{ch}_rp0_ohm")  # measured at the first pulse after arm: the device's value if it had one
+        assert c.findtext("rp0_ohm") is not None and (rp0 is None or c.findtext("rp0_ohm") == str(rp0)), ch
     assert "minima" in d.find("clock").findtext("timestamps") or "virtual" in d.find("clock").findtext("timestamps")
 
 
