@@ -54,8 +54,8 @@ def _check_layout_and_meta(xml: str, meta: dict, n_channels: int):
         ch = c.findtext("index")
         for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"):  # every one present and equal
             assert c.findtext(k) == str(meta.get(f"ch{ch}_{k}", meta.get(k))), (ch, k)
-        rp0 = meta.get(f"ch{ch}_rp0_ohm")  # measured at the first pulse after arm: the device's value if it had one
-        assert c.findtext("rp0_ohm") is not None and (rp0 is None or c.findtext("rp0_ohm") == str(rp0)), ch
+        # measured at the first pulse after arm: the device's value when the stream opened (0: not yet)
+        assert c.findtext("rp0_ohm") == str(meta.get(f"ch{ch}_rp0_ohm", 0)), ch
     assert "minima" in d.find("clock").findtext("timestamps") or "virtual" in d.find("clock").findtext("timestamps")
 
 
@@ -166,12 +166,10 @@ def test_monitor_lsl_streams_and_marks_its_disarm(lsl):
 def test_record_lsl_on_the_emulated_chip(lsl, tmp_path):
     """`record --lsl` against emu:// (the rp2 firmware on the emulated Pico, about 30-50 s here):
     the streams carry the real firmware's reports: every label, unit and metadata field, every
-    sample equal to its CSV row, the arm and disarm markers, and the timestamps on the device's
-    own time line (its frames' spacing, never the arrival times). What this cannot show is the
-    mapping onto the host's clock: the emulated chip's clock runs at a fraction of real time
-    (about a third here, varying with the machine's load), so 6 s of recording hold under 3 s
-    of device time, too short for the drift fit, and its residual would measure the emulator,
-    not a crystal (docs/lab.md, "The clock")."""
+    sample equal to its CSV row, the arm, disarm and clock markers. Not the timestamps: the
+    emulated chip's clock runs at a fraction of real time (about a third here, varying with the
+    machine's load), a "drift" of several 100 000 ppm whose fit moves the timestamps by seconds
+    when it first applies; that measures the emulator, not a crystal (docs/lab.md, "The clock")."""
     from steadytouch.emu import EMULATOR, NO_EMULATOR
 
     if not (EMULATOR / "firmware.uf2").exists():
@@ -194,11 +192,5 @@ def test_record_lsl_on_the_emulated_chip(lsl, tmp_path):
     assert [s[0] for s in samples] == [r["seq"] for r in rows if r["seq"] >= samples[0][0]]
     texts = [m for m, _ in markers]
     assert texts.index("arm ch=all") < texts.index("disarm ch=all") and texts[-1].startswith("clock ")
-    t_col = COLUMNS.index("time_us")
-    dev = [s[t_col] for s in samples]
-    spacing = [(t2 - t1) / (((d2 - d1) % (1 << 30)) / 1e6) for d1, d2, t1, t2 in zip(dev, dev[1:], stamps, stamps[1:])]
-    print(f"emu: {len(samples)} samples; LSL seconds per device second {min(spacing):.3f}..{max(spacing):.3f}; "
-          f"{texts[-1]}")
-    s = sorted(spacing[10:])
-    assert s[-1] - s[0] < 0.05 * s[len(s) // 2]  # one straight line: the arrival jitter does not reach them
+    print(f"emu: {len(samples)} samples; {texts[-1]}")  # the fit of a clock running at a fraction of real time
     assert "disarmed" in out
