@@ -493,11 +493,11 @@ def _lab_start(link, meta: dict, d: Device, wait_s: float = 0.0) -> None:
     say("LSL: streaming 'steadytouch telemetry' (StimTelemetry) and 'steadytouch markers' (Markers)")
     if wait_s > 0 and not link.streams.consumers():
         say(f"LSL: waiting up to {wait_s:g} s for a recorder (e.g. LabRecorder) to connect ...")
-        if d.t.realtime:
-            d.keep_alive()
-        end = time.monotonic() + wait_s
         feed, link.tap.feed = link.tap.feed, None  # the LSL stream starts with the recording, not before
         try:
+            if d.t.realtime:
+                d.keep_alive()  # (its ack's wait reads reports too: none of them is on the stream)
+            end = time.monotonic() + wait_s
             while not link.streams.consumers() and time.monotonic() < end:
                 d.read(0.05)
         finally:
