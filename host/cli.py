@@ -243,6 +243,21 @@ def cmd_arm(a) -> int:
     return 1 if any(w not in (hp.STOP_DISARMED, hp.STOP_NONE) for w in stopped.values()) else 0
 
 
+class _Asks:
+    """The responder, with the status line cleared before each question (the person's
+    prompt is drawn on the same terminal line)."""
+
+    def __init__(self, responder, prog):
+        self.r, self.prog = responder, prog
+
+    def __getattr__(self, name):
+        return getattr(self.r, name)
+
+    def key(self, **kw) -> str:
+        self.prog.clear()
+        return self.r.key(**kw)
+
+
 def _guided_session_class():
     from .session import T_STEPS_US, Session
 
@@ -293,7 +308,7 @@ def cmd_calibrate_interactive(a) -> int:
     prog = Progress("calibrate")
     with open_transport(a.device) as t:
         d = Device(t)
-        s = _GuidedSession(Watch(d, prog, lambda: s.where()), responder, prog, len(levels), channel=a.channel or 0,
+        s = _GuidedSession(Watch(d, prog, lambda: s.where()), _Asks(responder, prog), prog, len(levels), channel=a.channel or 0,
                            present_s=a.present_s, log=lambda text: (prog.clear(), say(text)))
         say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
         try:

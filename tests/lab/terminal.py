@@ -57,15 +57,17 @@ class Terminal:
         with self.lock:
             return self.buf.decode(errors="replace")
 
-    def wait_for(self, pattern: str, timeout_s: float = 60.0) -> re.Match:
-        """The first match of pattern in what the terminal showed; fails naming what it showed."""
+    def wait_for(self, pattern: str, timeout_s: float = 60.0, kill: bool = True) -> re.Match:
+        """The first match of pattern in what the terminal showed; fails naming what it showed
+        (and, with kill, ends the command)."""
         end = time.monotonic() + timeout_s
         while True:
             m = re.search(pattern, self.text)
             if m:
                 return m
             if time.monotonic() > end or self.p.poll() is not None and not self.reader.is_alive():
-                self.kill()
+                if kill:
+                    self.kill()
                 raise AssertionError(f"{pattern!r} not shown within {timeout_s} s; the terminal showed:\n{self.text[-3000:]}")
             time.sleep(0.05)
 
