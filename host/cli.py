@@ -575,6 +575,8 @@ def cmd_monitor(a) -> int:
                             d.feed()  # a redraw can take most of the keep-alive timeout on a busy machine
                         if live and not live.draw():
                             break  # the window was closed
+                        if live:
+                            _raise_lost_signal()
                         screen = state.render(a.device, d.lost)
                         if tty:
                             sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n" + prog.line() + "\n")
@@ -1049,8 +1051,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Signals whose exception may have been lost: one that lands at the entry of a Tk callback
+# (the live view's window), before tkinter's own try, is swallowed by Tk's C code (seen: a
+# SIGTERM to `monitor --plot` ignored until --seconds ran out). Loops that run Tk check it.
+_SIGNALLED: list[int] = []
+
+
 def _terminate(signum, frame):
+    _SIGNALLED.append(signum)
     raise Terminated()
+
+
+def _interrupt(signum, frame):
+    _SIGNALLED.append(signum)
+    raise KeyboardInterrupt()
+
+
+def _raise_lost_signal() -> None:
+    """Back in a loop after Tk ran: a Ctrl-C / SIGTERM that came meanwhile and did not end the
+    loop was swallowed; raise it again (the loop then ends as it would have)."""
+    if _SIGNALLED:
+        sig = _SIGNALLED[-1]
+        _SIGNALLED.clear()
+        raise KeyboardInterrupt() if sig == signal.SIGINT else Terminated()
 
 
 def main(argv=None) -> int:
@@ -1059,10 +1082,13 @@ def main(argv=None) -> int:
     old = {}
     import threading
 
+    _SIGNALLED.clear()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
             if sig is not None:
                 old[sig] = signal.signal(sig, _terminate)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not where Ctrl-C is ignored)
+            old[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # degenerate data is an error of its own, below
