@@ -96,20 +96,32 @@ def cmd_sim(a) -> int:
 
 
 def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
+    from .progress import Progress
+
     runs, files = {}, []
     stem = Path(a.scenario).stem
     for m in modes:
         t0 = time.perf_counter()
         say(f"running {a.scenario} ({duration:.0f} s simulated, {a.channels} channel(s), mode {m}) in the MicroPython VM ...")
-        def show(t_s, m=m, t0=t0):
-            if sys.stderr.isatty():
-                el = time.perf_counter() - t0
-                left = f", about {el * (duration - t_s) / t_s:.0f} s left" if t_s > 0 else ""
-                print(f"\r  {m}: {t_s:7.1f} of {duration:.0f} s simulated{left}   ", end="", file=sys.stderr, flush=True)
+        prog = Progress(f"sim {m}")
 
-        reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board)
-        if sys.stderr.isatty():
-            print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
+        def show(t_s, prog=prog):
+            prog.work(t_s, duration)
+            prog.tick(f"{t_s:.1f} of {duration:.0f} s simulated")
+
+        def seen(reps, prog=prog):
+            for r in reps:
+                if isinstance(r, Telemetry):
+                    prog.add(r)
+
+        try:
+            reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board,
+                                on_reports=seen)
+        except KeyboardInterrupt:  # no file of an unfinished run is written (Outputs); say how far it got
+            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file written "
+                             "(sim writes its files when every run is complete)"))
+            raise
+        prog.clear()
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
         if bad:
             raise SimError(f"the device refused: {bad[0].words()}")
@@ -118,8 +130,11 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         write_recording(outputs.path(path), tel, sim_meta(a, cal, m))
         runs[m] = tel
         files.append(path)
-        stops = sorted({STOP_WORDS.get(t.stop, str(t.stop)) for t in tel if t.stop != hp.STOP_NONE})
-        say(f"  {len(tel)} pulses in {time.perf_counter() - t0:.1f} s -> {path}" + (f"; stops: {', '.join(stops)}" if stops else ""))
+        done = Progress(f"  sim {m}", clock=prog.clock)  # the summary, from every report of the run
+        done.t0 = prog.t0
+        for t in tel:
+            done.add(t)
+        say(done.summary(f"{duration:.0f} s simulated -> {path}"))
         if a.lsl:
             from .lsl.link import stream_run
 
@@ -232,10 +247,60 @@ def cmd_arm(a) -> int:
     return 1 if any(w not in (hp.STOP_DISARMED, hp.STOP_NONE) for w in stopped.values()) else 0
 
 
+class _Asks:
+    """The responder, with the status line cleared before each question (the person's
+    prompt is drawn on the same terminal line)."""
+
+    def __init__(self, responder, prog):
+        self.r, self.prog = responder, prog
+
+    def __getattr__(self, name):
+        return getattr(self.r, name)
+
+    def key(self, **kw) -> str:
+        self.prog.clear()
+        return self.r.key(**kw)
+
+
+def _guided_session_class():
+    from .session import T_STEPS_US, Session
+
+    class GuidedSession(Session):
+        """The guided session with its progress: steps matched of all (per level each T step after the
+        reference, and the re-check), the points matched so far (kept if the session is cut short)."""
+
+        def __init__(self, dev, responder, prog, n_levels, **kw):
+            super().__init__(dev, responder, **kw)
+            self.prog, self.level = prog, ""
+            self.steps, self.total = 0, n_levels * len(T_STEPS_US)
+            self.rows: list[dict] = []
+            prog.work(0, self.total)
+
+        def where(self) -> str:
+            return f"{self.steps} of {self.total} steps matched" + (f", level {self.level}" if self.level else "")
+
+        def match(self, ref, t_us, i_start, level):
+            self.level = level
+            got = super().match(ref, t_us, i_start, level)
+            self.steps += 1
+            self.prog.work(self.steps, self.total)
+            return got
+
+        def _row(self, level, p):
+            row = super()._row(level, p)
+            self.rows.append(row)
+            return row
+
+    return GuidedSession
+
+
 def cmd_calibrate_interactive(a) -> int:
     from . import fit as F
     from .participant import write_rows
-    from .session import KeyboardResponder, Session, SimResponder, Stopped
+    from .progress import Progress, Watch
+    from .session import KeyboardResponder, SimResponder, Stopped
+
+    _GuidedSession = _guided_session_class()
 
     _finite("present_s", a.present_s, 0.05, 60)
     for k in ("weak_ua", "strong_ua"):
@@ -243,16 +308,30 @@ def cmd_calibrate_interactive(a) -> int:
             raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
+    levels = {"weak": a.weak_ua, "strong": a.strong_ua}
+    prog = Progress("calibrate")
     with open_transport(a.device) as t:
         d = Device(t)
-        s = Session(d, responder, channel=a.channel or 0, present_s=a.present_s)
+        s = _GuidedSession(Watch(d, prog, lambda: s.where()), _Asks(responder, prog), prog, len(levels), channel=a.channel or 0,
+                           present_s=a.present_s, log=lambda text: (prog.clear(), say(text)))
         say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
         try:
             with d.live():  # keep-alive while presenting; DISARM however the session ends
-                res = s.run({"weak": a.weak_ua, "strong": a.strong_ua})
-        except Stopped:
-            say("stopped: the device is disarmed; nothing was sent")
-            return 1
+                res = s.run(levels)
+        except (Stopped, KeyboardInterrupt) as e:  # q, Ctrl-C, SIGTERM: the matches made so far are kept
+            kept = ""
+            if s.rows:
+                out.mkdir(parents=True, exist_ok=True)
+                with Outputs() as o:
+                    write_rows(o.path(out / "session-partial.csv"), s.rows)
+                kept = f"; the {len(s.rows)} points matched so far -> {out / 'session-partial.csv'} (not fitted)"
+            say(prog.summary(f"{s.where()}; {'stopped' if isinstance(e, Stopped) else 'interrupted'}, "
+                             f"nothing was sent{kept}"))
+            say(_disarm_words(d, a.device))
+            if isinstance(e, Stopped):
+                return 1
+            raise
+        say(prog.summary(s.where()))
         out.mkdir(parents=True, exist_ok=True)
         data = out / "session.csv"
         with Outputs() as o:  # the measured session is kept even if the fit fails
@@ -433,11 +512,11 @@ def _lab_start(link, meta: dict, d: Device, wait_s: float = 0.0) -> None:
     say("LSL: streaming 'steadytouch telemetry' (StimTelemetry) and 'steadytouch markers' (Markers)")
     if wait_s > 0 and not link.streams.consumers():
         say(f"LSL: waiting up to {wait_s:g} s for a recorder (e.g. LabRecorder) to connect ...")
-        if d.t.realtime:
-            d.keep_alive()
-        end = time.monotonic() + wait_s
         feed, link.tap.feed = link.tap.feed, None  # the LSL stream starts with the recording, not before
         try:
+            if d.t.realtime:
+                d.keep_alive()  # (its ack's wait reads reports too: none of them is on the stream)
+            end = time.monotonic() + wait_s
             while not link.streams.consumers() and time.monotonic() < end:
                 d.read(0.05)
         finally:
@@ -496,8 +575,12 @@ def cmd_monitor(a) -> int:
                     now = time.monotonic()
                     if now >= next_draw:
                         next_draw = now + 0.1  # 10 screens a second
+                        if live:
+                            d.feed()  # a redraw can take most of the keep-alive timeout on a busy machine
                         if live and not live.draw():
                             break  # the window was closed
+                        if live:
+                            _raise_lost_signal()
                         screen = state.render(a.device, d.lost)
                         if tty:
                             sys.stdout.write("\x1b[H\x1b[2J" + screen + "\n" + prog.line() + "\n")
@@ -714,8 +797,20 @@ def cmd_synth(a) -> int:
     return 0
 
 
+def _interruptible(prog, run, d: Device, url: str, kept: str):
+    """run(); on Ctrl-C or SIGTERM the summary so far, what is kept and whether the device
+    acknowledged its DISARM, then the interruption goes on (exit 130 / 143)."""
+    try:
+        return run()
+    except KeyboardInterrupt:
+        say(prog.summary(f"interrupted: {kept}"))
+        say(_disarm_words(d, url))
+        raise
+
+
 def cmd_selftest(a) -> int:
     """Self-test and monitor correction on a dummy load (host/selftest.py)."""
+    from .progress import Progress, Watch
     from . import selftest as st
 
     _finite("load-ohm", a.load_ohm, *st.LOAD_OHM_RANGE)
@@ -724,7 +819,15 @@ def cmd_selftest(a) -> int:
     url = a.device
     if url.startswith(("sim://", "emu://")) and "load=" not in url:  # the simulated resistor in place of the electrodes
         url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
-    return st.run(url, a.load_ohm, a.channel, a.pulses, not a.no_store, a.save_dir, say, open_transport, a.scope)
+
+    def measure(d, pts, chans, label, kept):  # st.measure with the status line and a clean Ctrl-C
+        prog = Progress(label, total_pulses=len(pts) * a.pulses * len(chans))
+        rows = _interruptible(prog, lambda: st.measure(Watch(d, prog), pts, chans, a.pulses), d, a.device, kept)
+        say(prog.summary())
+        return rows
+
+    return st.run(url, a.load_ohm, a.channel, a.pulses, not a.no_store, a.save_dir, say, open_transport, a.scope,
+                  measure_with=measure)
 
 
 # ------------------------------------------------------------ parser
@@ -912,8 +1015,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Signals whose exception may have been lost: one that lands at the entry of a Tk callback
+# (the live view's window), before tkinter's own try, is swallowed by Tk's C code (seen: a
+# SIGTERM to `monitor --plot` ignored until --seconds ran out). Loops that run Tk check it.
+_SIGNALLED: list[int] = []
+
+
 def _terminate(signum, frame):
+    _SIGNALLED.append(signum)
     raise Terminated()
+
+
+def _interrupt(signum, frame):
+    _SIGNALLED.append(signum)
+    raise KeyboardInterrupt()
+
+
+def _raise_lost_signal() -> None:
+    """Back in a loop after Tk ran: a Ctrl-C / SIGTERM that came meanwhile and did not end the
+    loop was swallowed; raise it again (the loop then ends as it would have)."""
+    if _SIGNALLED:
+        sig = _SIGNALLED[-1]
+        _SIGNALLED.clear()
+        raise KeyboardInterrupt() if sig == signal.SIGINT else Terminated()
 
 
 def main(argv=None) -> int:
@@ -922,10 +1046,13 @@ def main(argv=None) -> int:
     old = {}
     import threading
 
+    _SIGNALLED.clear()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
             if sig is not None:
                 old[sig] = signal.signal(sig, _terminate)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not where Ctrl-C is ignored)
+            old[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # degenerate data is an error of its own, below

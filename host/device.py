@@ -59,6 +59,13 @@ class Device:
             due = self._ka_every_s
         return due
 
+    def feed(self, min_age_s: float = 0.05) -> None:
+        """Send a KEEPALIVE now (keep-alive on, the last command older than min_age_s): before
+        a long stretch of host work between reads (the live view's redraw), so it gets the
+        whole timeout rather than what is left of it."""
+        if self._ka_every_s and time.monotonic() - self._last_write >= min_age_s:
+            self._write(self.cmds.keepalive(self.ka_ms))
+
     def keep_alive(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS) -> None:
         """Set the device's keep-alive timeout and keep it fed from now on (every timeout/4)."""
         self.keepalive(timeout_ms)

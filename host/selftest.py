@@ -278,9 +278,16 @@ def _ask_stdin(prompt: str) -> str:
 
 
 def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, say, open_transport,
-        scope: bool = False, ask=_ask_stdin) -> int:
-    """The whole self-test on one device URL; returns the exit code (0)."""
+        scope: bool = False, ask=_ask_stdin, measure_with=None) -> int:
+    """The whole self-test on one device URL; returns the exit code (0).
+    measure_with(d, pts, chans, label, kept): measure() with a status line (the CLI's); `kept` says
+    what an interruption leaves."""
     from .device import Device
+
+    def _measure(d, pts, chans, label, kept):
+        if measure_with is None:
+            return measure(d, pts, chans, pulses)
+        return measure_with(d, pts, chans, label, kept)
 
     sim = url.startswith("sim://")
     with open_transport(url) as t:
@@ -298,7 +305,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
         try:
             for ch in chans:  # the raw monitor: the correction off in RAM only
                 d.set_vmon(ch, 0, 0)
-            rows = measure(d, pts, chans, pulses)
+            rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
             if scope:
                 for f in fits:
@@ -315,7 +322,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
             check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
             if not sim:
-                rows = measure(d, check, chans, pulses)
+                rows = _measure(d, check, chans, "selftest check", "the correction is stored on the device")
                 say(f"with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
                     f"(was {worst:.2%})")
         finally:
@@ -335,7 +342,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 if c.vmon_state != hp.VMON_LOADED or (c.vmon_gain_ppm, c.dac_gain_ppm) != (f.gain_ppm, f.dac_gain_ppm):
                     raise SelfTestError(f"ch{ch}: after a reset the board did not load the stored correction "
                                         f"(state {c.vmon_state}, {c.vmon_gain_ppm} ppm)")
-            rows = measure(d, check, chans, pulses)
+            rows = _measure(d, check, chans, "selftest check", "the correction is stored on the device")
         say(f"after a reset, with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
             f"(was {worst:.2%})")
     return 0

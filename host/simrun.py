@@ -96,7 +96,12 @@ def scenario_keys(name: str):
 
 def die_with_parent():
     """preexec_fn for the VM child: the kernel kills it when this process dies
-    (Linux PR_SET_PDEATHSIG; elsewhere the child's --exit-on-eof covers it)."""
+    (Linux PR_SET_PDEATHSIG; elsewhere the child's --exit-on-eof covers it). It runs in a
+    process group of its own: a Ctrl-C typed in the terminal interrupts the host only, which
+    then disarms the simulated device (a Ctrl-C reaching the child too killed it before the
+    DISARM could be acknowledged)."""
+    if hasattr(os, "setpgid"):
+        os.setpgid(0, 0)
     if not sys.platform.startswith("linux"):
         return
     try:
@@ -145,11 +150,28 @@ class Calib:
     y_star_pc: int = 186000
 
 
+def _whole_reports(buf: bytes) -> tuple[list[bytes], bytes]:
+    """The whole framed reports at the start of buf, and what follows the last one."""
+    k, cut = 0, 0
+    out = []
+    while k + 66 <= len(buf):
+        if buf[k] == 0xA5 and buf[k + 1] == 0x5A:
+            out.append(bytes(buf[k + 2 : k + 66]))
+            k += 66
+            cut = k
+        else:
+            k += 1
+            cut = k
+    return out, buf[cut:]
+
+
 def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: int = 1, frames: int | None = None,
-                 timeout: float = 3600, progress=None, ideal: bool = False):
+                 timeout: float = 3600, progress=None, ideal: bool = False, on_reports=None):
     """All IN reports of one run (virtual clock), decoded. progress(t_s) is called as
-    simulated time advances (about every 0.2 s of wall time). ideal: the ideal board
-    instead of the one with the real parts' errors (docs/simulation.md)."""
+    simulated time advances (about every 0.2 s of wall time); on_reports(reports), if
+    given, just before it with the reports decoded since its last call (the terminal's
+    pulses, rate and stops). ideal: the ideal board instead of the one with the real
+    parts' errors (docs/simulation.md)."""
     import time
 
     if not FIRMWARE.is_dir():
@@ -161,19 +183,24 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
     if frames:
         args += ["--frames", str(frames)]
     p = vm_popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    chunks, t_start, last, tail = [], time.monotonic(), 0.0, b""
+    chunks, t_start, last, tail, pending = [], time.monotonic(), 0.0, b"", b""
     try:
         while True:
             chunk = p.stdout.read1(1 << 16)
             if not chunk:
                 break
             chunks.append(chunk)
+            if on_reports is not None:
+                pending += chunk
             tail = (tail + chunk)[-4 * 66:]  # enough to hold one whole framed report
             now = time.monotonic()
             if progress and now - last > 0.2:
-                last = now
                 reps = split_stdio_stream(tail)
-                if reps:
+                if reps:  # (not yet a whole report: at the next chunk)
+                    last = now
+                    if on_reports is not None:  # whole reports since the last call (a report may span chunks)
+                        got, pending = _whole_reports(pending)
+                        on_reports([decode(r) for r in got])
                     progress(int.from_bytes(reps[-1][8:12], "little") / 1e6)  # the report's time_us
             if now - t_start > timeout:
                 raise SimError(f"the simulated run took longer than {timeout:.0f} s")

@@ -89,6 +89,7 @@ def calibrations(meta: dict, n_channels: int) -> list[dict]:
         if not c and all(k in meta for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc")):
             c = {k: meta[k] for k in CAL_KEYS if k in meta}
         if c:
+            c.setdefault("rp0_ohm", 0)  # a simulation streamed from its start: not measured yet (its rp0 marker has it)
             out.append({"index": ch, **c})
     return out
 

@@ -152,3 +152,22 @@ def test_a_refused_command_is_marked_as_refused():
     tap.write(arm)
     tap.read(0.1)
     assert sink.markers[0][0].startswith("arm ch=all refused: not_calibrated")
+
+
+@pytest.mark.parametrize("stop", sorted(set(range(hp.STOP_ELECTRODE_OFF, hp.STOP_INTERNAL + 1))))
+def test_every_latched_stop_is_marked_once_with_its_reason(stop):
+    """Each latched stop code of hid_protocol (3..7) has its reason word and is marked once, at the
+    report that first carries it; a disarm by command is no stop marker (its ack is the disarm)."""
+    from steadytouch.lsl.streams import STOP_REASONS
+
+    assert stop in STOP_REASONS and STOP_REASONS[stop].replace("_", "").isalpha()
+    reps = [telemetry_report(0, 20000, ch=1), telemetry_report(1, 40000, ch=1, stop=stop, flags=0),
+            telemetry_report(2, 60000, ch=1, stop=stop, flags=0),
+            telemetry_report(3, 80000, ch=0, stop=hp.STOP_DISARMED, flags=0)]
+    t = FakeTransport(reps, [1.0, 1.02, 1.04, 1.06])
+    sink = Sink()
+    tap = Tap(t, Feed(sink, ClockMap()), lambda: t.now)
+    while tap.read(0.1) is not None:
+        pass
+    assert [m for m, _ in sink.markers] == [f"stop ch=1 reason={STOP_REASONS[stop]}"]
+    assert sink.markers[0][1] == pytest.approx(sink.stamps[1])

@@ -123,8 +123,9 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
     try:
         env = dict(os.environ, DISPLAY=display, MPLBACKEND="TkAgg")
         exe = Path(sys.executable).parent / "steadytouch"
+        # 3000 frames: 60 s of device time (steady alone is 10 s; on a busy machine the screenshots can take longer)
         mon = subprocess.Popen([str(exe), "monitor", "--plot", "--seconds", "25", "--device",
-                                f"sim://steady?channels=4&auto={AUTO}"], env=env, stdout=subprocess.PIPE,
+                                f"sim://steady?channels=4&frames=3000&auto={AUTO}"], env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
         missing, img, last_error, end = None, None, None, time.monotonic() + 20
         while time.monotonic() < end and mon.poll() is None:
@@ -166,3 +167,39 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
     out, err = ended
     assert mon.returncode == 0, err
     assert "disarmed" in out and "plot redraws" in out
+
+
+def test_a_signal_swallowed_inside_the_window_still_ends_the_monitor(monkeypatch, capsys):
+    """A SIGTERM (or Ctrl-C) that lands at the entry of a Tk callback, before tkinter's own
+    try, is swallowed by Tk's C code: seen on Xvfb, `monitor --plot` then ran on until
+    --seconds. Here the window's draw swallows one, as Tk did: the monitor still stops at
+    once, disarms, exit 0."""
+    import signal
+
+    from steadytouch import cli, monitor
+
+    class SwallowingPlot:
+        draws = 0
+
+        def set_meta(self, meta):
+            pass
+
+        def add(self, rep):
+            pass
+
+        def draw(self):
+            self.draws += 1
+            if self.draws == 5:
+                try:
+                    cli._terminate(signal.SIGTERM, None)  # the handler ran inside Tk ...
+                except KeyboardInterrupt:
+                    pass  # ... and Tk dropped its exception
+            return True
+
+    monkeypatch.setattr(monitor, "LivePlot", SwallowingPlot)
+    t0 = time.monotonic()
+    rc = cli.main(["monitor", "--plot", "--seconds", "30", "--device", f"sim://steady?auto={AUTO}"])
+    took = time.monotonic() - t0
+    out = capsys.readouterr().out
+    assert rc == 0 and took < 15, (rc, took)
+    assert "reports lost, 5 plot redraws" in out and out.rstrip().endswith("disarmed")  # stopped at the 5th draw
