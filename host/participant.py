@@ -25,6 +25,8 @@ import numpy as np
 from .simrun import firmware_module
 
 T_STEPS_US = np.arange(200, 701, 50)  # the paper's Exp. 1: 200..700 us in 50 us steps (11 points)
+RP_FLOOR_OHM = 1000.0  # below any electrode's pulse resistance (Rs alone is 0.3-1.5 kohm)
+REDRAWS = 100
 CONDITIONS = [(m, site, area) for m in ("weak", "strong") for site in ("forearm", "upperarm") for area in (5.6, 3.0)]
 
 
@@ -73,13 +75,18 @@ class SimParticipant:
             sites = {"forearm": 1.0, "upperarm": float(np.exp(0.2 * self.rng.normal()))}
             for ci, (mag, site, area) in enumerate(CONDITIONS):
                 level = 1.0 if mag == "weak" else 1.8
-                i = self.matched_current_ua(p, T_STEPS_US, level, sites[site], area)
-                i = np.maximum(i, 50.0)
-                skin = self.skin(area)
-                rp_ref = skin.rp_kohm(float(i[0]), float(T_STEPS_US[0])) * 1000.0
-                q = i * T_STEPS_US
-                rp = self.rp_on_line(q, q[0], rp_ref)
-                rp[0] = rp_ref * (1 + self.rng.normal(0, self.rp_noise))
+                for _ in range(REDRAWS):
+                    i = self.matched_current_ua(p, T_STEPS_US, level, sites[site], area)
+                    i = np.maximum(i, 50.0)
+                    skin = self.skin(area)
+                    rp_ref = skin.rp_kohm(float(i[0]), float(T_STEPS_US[0])) * 1000.0
+                    q = i * T_STEPS_US
+                    rp = self.rp_on_line(q, q[0], rp_ref)
+                    rp[0] = rp_ref * (1 + self.rng.normal(0, self.rp_noise))
+                    if rp.min() >= RP_FLOOR_OHM:  # the line is a model of the measured range only: far out
+                        break  # (a large charge, a steep line) it reaches 0 ohm; such a draw is drawn again
+                else:
+                    raise RuntimeError(f"P{pi + 1:02d}: no plausible skin in {REDRAWS} draws")
                 for t, ii, r in zip(T_STEPS_US, i, rp):
                     rows.append({"participant": f"P{pi + 1:02d}", "condition": f"{mag}-{site}-{area:g}cm2",
                                  "t_us": int(t), "i_ua": round(float(ii), 1), "rp_ohm": round(float(r), 1)})

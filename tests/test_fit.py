@@ -100,3 +100,15 @@ def test_cli_synth_fit_json_validate(tmp_path):
     assert (tmp_path / "fit.png").read_bytes()[:4] == b"\x89PNG"
     p = run("validate", str(tmp_path / "exp2.csv"), "--calibration", str(tmp_path / "calibration.json"))
     assert p.returncode == 0 and "mean r2 of the chosen points" in p.stdout
+
+
+def test_a_large_synthetic_study_has_no_implausible_rp(tmp_path):
+    """300 participants (seed 1) once gave Rp = -64 737 ohm (P253, 250 us): the Q-Rp line far out of
+    its measured range, which `fit` refused. Such a condition is drawn again; every Rp is above the
+    floor and the file loads."""
+    from steadytouch import participant as P
+
+    rows = SimParticipant(seed=1).exp1_rows(300)
+    assert min(r["rp_ohm"] for r in rows) >= P.RP_FLOOR_OHM
+    write_rows(tmp_path / "exp1.csv", rows)
+    assert len(F.load(tmp_path / "exp1.csv")) == 300 * len(P.CONDITIONS)
