@@ -27,6 +27,8 @@ except ImportError:  # CPython: the decorator does nothing
         def native(f):
             return f
 
+        viper = native
+
     def const(x):
         return x
 
@@ -90,8 +92,8 @@ def _check(name, v, lo, hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
-@micropython.native
-def _t_from_qf(qf, i0, t0):
+@micropython.viper
+def _t_from_qf(qf: int, i0: int, t0: int) -> int:
     """Eq. 4's T = Q^2 / mE, rounded, with Q = qf / 16 pC, mE = i0^2 t0; _T_SAT if huge.
 
     v = Q / i0 (= sqrt(T * t0)) in Q.16; T = v^2 / t0.
@@ -171,7 +173,7 @@ class Controller:
         self.t_min_us = t_min_us
         self.t_max_us = t_max_us
         self.q_max_pc = q_max_pc
-        self.skin.ltmax = log2q(t_max_us)
+        self.skin.limits(i_min_ua, i_max_ua, t_max_us, q_max_pc)
         self.calibrated = False
         self.i_ua = 0
         self.t_us = 0
@@ -195,12 +197,12 @@ class Controller:
         self._y_q4 = y_star_pc << 4
         self._q_max_q4 = self.q_max_pc << 4
         self._line_cap_q4 = (self.q_max_pc - y_star_pc) << 4
-        self.skin.lme = (log2q(i0_ua) << 1) + log2q(t0_us)
         self.i0_ua = i0_ua
         self.t0_us = t0_us
         self.rp0_ohm = rp0_ohm
         self.x_star_ohm = x_star_ohm
         self.y_star_pc = y_star_pc
+        self.skin.law(self)
         self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
         self._forget()
         self.rp_ohm = rp0_ohm
