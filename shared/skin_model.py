@@ -681,7 +681,7 @@ class SkinModel:
                     self._set_lc(lc)
 
     @micropython.native
-    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev):
+    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev, from_q):
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
         prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
@@ -690,7 +690,8 @@ class SkinModel:
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
         step: never the larger hydration answer nor a search's unfinished value).
-        q_k is i_k * t_k (its log2 comes with the pulse: _pulse)."""
+        q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
+        with the bounds (sensation_core._from_q)."""
         v = self.v
         _pulse(v, _V_NOW, i_k, t_k, rp_ohm)
         p0rp = prev.rp_ohm
@@ -743,7 +744,7 @@ class SkinModel:
         if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
-        st = c._from_q(q16)
+        st = from_q(c, q16)
         _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
         self.predicted_rp_ohm = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
         self.jumped = 1
