@@ -80,8 +80,9 @@ for name in sorted(n for n in os.listdir("/") if n.startswith("cl_") and n.endsw
 """
 
 
-def closed_loops(d):
-    """Record CLOSED_CASES in CPython: one /cl_*.bin each; [(label, CPython hash)]."""
+def closed_loops(d, cases=CLOSED_CASES, limit=None):
+    """Record cases (default CLOSED_CASES) in CPython: one cl_*.bin each in d, its first `limit`
+    updates if given; [(label, CPython hash)]."""
     sys.path[:0] = [str(ROOT / "bench"), str(ROOT / "shared")]
     import controllers as bench
     import sensation_core as sc
@@ -104,7 +105,7 @@ def closed_loops(d):
     out = []
     sc.Controller.calibrate, sc.Controller.set_skin, sc.Controller.update = cal_rec, skin_rec, upd_rec
     try:
-        for k, (name, noise) in enumerate(CLOSED_CASES):
+        for k, (name, noise) in enumerate(cases):
             i0 = 1000
             if name.startswith("step"):
                 _, dk, i0 = name.split()
@@ -113,7 +114,7 @@ def closed_loops(d):
             else:
                 ev, n = bench.scenario_events(name)
             bench.run(sc.MODE_FAST, ev, n, i0=i0, noise=noise)
-            rps = rec["rps"]
+            rps = rec["rps"][:limit]
             (d / f"cl_{k}.bin").write_bytes(struct.pack("<14i", *rec["lim"], *rec["cal"], *rec["skin"], len(rps))
                                             + struct.pack(f"<{len(rps)}i", *rps))
             out.append((f"{name}{', noise 0.3 %' if noise else ''}", rps))
