@@ -61,9 +61,9 @@ _L_1MA = const(653118)  # log2(1000 uA): the model's reference current
 _L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
 _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _L_LN2 = const(-34653)  # log2(ln 2)
-NOROOT = const(-0x3FFFFFFF)  # "no sign change": what SkinModel.root and g return then
+NOROOT = const(-0x3FFFFFFF)  # "no sign change": what _root and _law_q return then
 
-# what SkinModel.g(kind, x, lc, p, o) measures, x being the unknown
+# what _root's g(kind, x, lc) measures, x being the unknown (p, o: the pulses it reads)
 _K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
 _K_PEEL = const(1)  # x = log2 contact change since pulse o: the model reads pulse p's Rp
 _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
@@ -115,7 +115,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     on the values in vv (SkinModel.v); NOROOT if the ends have one sign or g fails. With
     b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16), p and o the
     pulses read (_V_NOW, _V_BEFORE, _V_PROBE). _K_ANCHOR finds its own range from pulse
-    p (SkinModel.anchor: a, b are not read).
+    p, R(I) >= Rp - Rs up to 16 times more (a, b are not read).
     One machine-code function (viper) with the model's Rp and fixmath.exp2q's
     interpolation inline: no call per evaluation. Every value is below 2**30, so
     32-bit (ARM) and 64-bit words give Python's results; the interpolation
@@ -649,12 +649,6 @@ class SkinModel:
         return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
     @micropython.native
-    def anchor(self, p, lc):
-        """log2 S with which the model (log2 Cp = lc) reads pulse p (_V_NOW, _V_BEFORE), or
-        NOROOT. R(I) >= Rp - Rs, so S is searched from there up to 16 times more (_root)."""
-        return _root(self.v, _K_ANCHOR + (p << 8), 0, 0, lc)
-
-    @micropython.native
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
@@ -702,7 +696,7 @@ class SkinModel:
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
                 self.refit_cp()
-        ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)  # self.anchor(_V_NOW, self.lc)
+        ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
         self.ls = ls  # (self._set_ls(ls), inline: a call is ~10 us on the chip)
@@ -714,7 +708,7 @@ class SkinModel:
         if q16 > q_k << 4 and not jumped and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
-            ls0 = _root(v, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, self.lc)  # self.anchor(_V_BEFORE, ...)
+            ls0 = _root(v, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, self.lc)  # and on the one before
             if ls0 != NOROOT:
                 v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
                 la = _root(v, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0)
