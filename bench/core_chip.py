@@ -1,6 +1,6 @@
 """Per-update time of the core on the emulated RP2040 (MicroPython v1.28.0 in rp2040js).
 
-Run: .venv/bin/python bench/core_chip.py [--pad N ...] [--no-closed-loop] [--no-sc]
+Run: .venv/bin/python bench/core_chip.py [--pad N ...] [--no-closed-loop] [--no-sc] [--core-rev REV ...]
 
 Compiles the core's modules (sensation_core, fixmath, fast_step, skin_model) with
 `mpy-cross -march=armv6m`, puts them on the emulated board of ../shared/emulator and
@@ -15,6 +15,11 @@ Compiles the core's modules (sensation_core, fixmath, fast_step, skin_model) wit
 Emulated time is deterministic; the heap layout can move it, so --pad N (repeatable)
 runs it again with N bytes allocated after the import. rp2040js 1.4.1 is installed
 with npm into ~/.cache/steadytouch-rp2040js (once). A run takes a few minutes.
+
+--core-rev REV (repeatable) times the core of git revision REV instead of the working
+tree's: its shared/ modules of MODULES that exist at REV (before the split, 6cb443f, the
+core was sensation_core.py alone), bench_sc.py's scenarios only (the closed loops' hashes
+are CPython's of the working tree). Used for issue 14's "no slower than before the split".
 """
 
 import argparse
@@ -75,8 +80,9 @@ for name in sorted(n for n in os.listdir("/") if n.startswith("cl_") and n.endsw
 """
 
 
-def closed_loops(d):
-    """Record CLOSED_CASES in CPython: one /cl_*.bin each; [(label, CPython hash)]."""
+def closed_loops(d, cases=CLOSED_CASES, limit=None):
+    """Record cases (default CLOSED_CASES) in CPython: one cl_*.bin each in d, its first `limit`
+    updates if given; [(label, CPython hash)]."""
     sys.path[:0] = [str(ROOT / "bench"), str(ROOT / "shared")]
     import controllers as bench
     import sensation_core as sc
@@ -99,7 +105,7 @@ def closed_loops(d):
     out = []
     sc.Controller.calibrate, sc.Controller.set_skin, sc.Controller.update = cal_rec, skin_rec, upd_rec
     try:
-        for k, (name, noise) in enumerate(CLOSED_CASES):
+        for k, (name, noise) in enumerate(cases):
             i0 = 1000
             if name.startswith("step"):
                 _, dk, i0 = name.split()
@@ -108,7 +114,7 @@ def closed_loops(d):
             else:
                 ev, n = bench.scenario_events(name)
             bench.run(sc.MODE_FAST, ev, n, i0=i0, noise=noise)
-            rps = rec["rps"]
+            rps = rec["rps"][:limit]
             (d / f"cl_{k}.bin").write_bytes(struct.pack("<14i", *rec["lim"], *rec["cal"], *rec["skin"], len(rps))
                                             + struct.pack(f"<{len(rps)}i", *rps))
             out.append((f"{name}{', noise 0.3 %' if noise else ''}", rps))
@@ -129,6 +135,25 @@ def closed_loops(d):
     return res
 
 
+def core_sources(rev, d):
+    """The core's module sources: the working tree's (rev None) or git revision rev's, written to d."""
+    if rev is None:
+        return [(m, ROOT / "shared" / f"{m}.py") for m in MODULES]
+    have = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", rev, "shared/"],
+                          capture_output=True, text=True)
+    if have.returncode:
+        sys.exit(f"--core-rev {rev}: not a git revision of this checkout ({have.stderr.strip()})")
+    out = []
+    d.mkdir(parents=True, exist_ok=True)
+    for m in MODULES:
+        if f"shared/{m}.py" in have.stdout.split():
+            src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:shared/{m}.py"],
+                                 capture_output=True, check=True).stdout
+            (d / f"{m}.py").write_bytes(src)
+            out.append((m, d / f"{m}.py"))
+    return out
+
+
 def runner():
     """rp2run.mjs copied beside an npm install of rp2040js (it imports the package by name)."""
     CACHE.mkdir(parents=True, exist_ok=True)
@@ -144,18 +169,21 @@ def main():
     ap.add_argument("--pad", type=int, action="append", default=[], help="bytes allocated after the import")
     ap.add_argument("--no-closed-loop", action="store_true", help="skip the replayed closed loops")
     ap.add_argument("--no-sc", action="store_true", help="skip the emulator's bench_sc.py scenarios")
+    ap.add_argument("--core-rev", action="append", default=[], metavar="REV",
+                    help="time git revision REV's core (bench_sc.py scenarios only; repeatable)")
     a = ap.parse_args()
     if not (EMU / "rp2run.mjs").exists():
         sys.exit(f"no emulator at {EMU}: it is the shared reference folder beside the checkout (../shared/emulator)")
     run = runner()
     bench = (EMU / "bench_sc.py").read_text()
+    if a.core_rev:
+        for rev in a.core_rev:
+            with tempfile.TemporaryDirectory() as d:
+                sc_scenarios(run, bench, Path(d), [0] + a.pad, rev)
+        return
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
-        puts = []
-        for m in MODULES:
-            subprocess.run([str(BIN / "mpy-cross"), "-march=armv6m", "-o", str(d / f"{m}.mpy"),
-                            str(ROOT / "shared" / f"{m}.py")], check=True)
-            puts += ["--put", f"{d / m}.mpy:/{m}.mpy"]
+        puts = compile_core(d, None)
         if not a.no_closed_loop:
             cases = closed_loops(d)
             cl_puts = []
@@ -180,23 +208,41 @@ def main():
                           f"{'yes' if int(hc) == h else 'NO'} |")
                 if len(rows) != len(cases):
                     sys.exit(f"the chip answered {len(rows)} of {len(cases)} cases: {r.stdout[-400:]}")
-        for pad in ([0] + a.pad) if not a.no_sc else []:
-            script = d / f"bench_pad{pad}.py"
-            script.write_text(bench.replace("import sensation_core as sc\n",
-                                            f"import sensation_core as sc\n_pad = bytearray({pad})\n", 1))
-            marks = d / f"marks{pad}.json"
-            r = subprocess.run(["node", str(run), "--uf2", str(EMU / "firmware.uf2"), "--bootrom",
-                                str(EMU / "bootrom-b1.bin"), *puts, "--marks", str(marks), str(script)],
-                               capture_output=True, text=True)
-            if r.returncode:
-                sys.exit(f"the emulator failed (exit {r.returncode}): {r.stderr.strip().splitlines()[-1:]}")
-            print(f"## pad {pad} B")
-            for line in r.stdout.splitlines():
-                if "hash" in line:
-                    print("   " + re.sub(r"ticks_us per update.*?; hash", "hash", line))
-            stats = subprocess.run([sys.executable, str(EMU / "marks_stats.py"), str(marks)],
-                                   capture_output=True, text=True, check=True)
-            print(stats.stdout, end="")
+        if not a.no_sc:
+            sc_scenarios(run, bench, d, [0] + a.pad, None, puts)
+
+
+def compile_core(d, rev):
+    """The core's modules (working tree or git revision rev) as armv6m .mpy in d; rp2run --put arguments."""
+    puts = []
+    for m, src in core_sources(rev, d / "src"):
+        subprocess.run([str(BIN / "mpy-cross"), "-march=armv6m", "-o", str(d / f"{m}.mpy"), str(src)], check=True)
+        puts += ["--put", f"{d / m}.mpy:/{m}.mpy"]
+    return puts
+
+
+def sc_scenarios(run, bench, d, pads, rev, puts=None):
+    """bench_sc.py's three scenarios on the chip, one run per heap pad; prints hashes and marks_stats."""
+    if puts is None:
+        puts = compile_core(d, rev)
+    core = "working tree" if rev is None else f"git {rev}"
+    for pad in pads:
+        script = d / f"bench_pad{pad}.py"
+        script.write_text(bench.replace("import sensation_core as sc\n",
+                                        f"import sensation_core as sc\n_pad = bytearray({pad})\n", 1))
+        marks = d / f"marks{pad}.json"
+        r = subprocess.run(["node", str(run), "--uf2", str(EMU / "firmware.uf2"), "--bootrom",
+                            str(EMU / "bootrom-b1.bin"), *puts, "--marks", str(marks), str(script)],
+                           capture_output=True, text=True)
+        if r.returncode:
+            sys.exit(f"the emulator failed (exit {r.returncode}): {r.stderr.strip().splitlines()[-1:]}")
+        print(f"## bench_sc.py, core of the {core} ({', '.join(p.split(':/')[-1] for p in puts[1::2])}), pad {pad} B")
+        for line in r.stdout.splitlines():
+            if "hash" in line:
+                print("   " + re.sub(r"ticks_us per update.*?; hash", "hash", line))
+        stats = subprocess.run([sys.executable, str(EMU / "marks_stats.py"), str(marks)],
+                               capture_output=True, text=True, check=True)
+        print(stats.stdout, end="")
 
 
 if __name__ == "__main__":

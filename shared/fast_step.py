@@ -9,7 +9,10 @@ Eq. 4 and bounds as the paper's mode (Controller._from_q).
 
 Functions of the Controller `c`, not methods: the core stays the paper's law. State
 used here: c.before (the pulse measured before the one just measured) and
-c.drift_ohm. Every intermediate is below 2**30; nothing is allocated.
+c.drift_ohm. The core's Eq. 3 and Eq. 4 come in as arguments (line, from_q:
+sensation_core._line, _from_q): this module cannot import the core, which imports it,
+and a method call on the Controller costs ~16 us more than a function call on the chip
+(its attribute map is large). Every intermediate is below 2**30; nothing is allocated.
 """
 
 try:
@@ -61,19 +64,20 @@ def least_elastic(x):
 
 
 @micropython.native
-def fast_pulse(c, qf, q_k, rp_ohm):
+def fast_pulse(c, qf, q_k, rp_ohm, line, from_q):
     """MODE_FAST's next pulse from the paper's step qf (1/16 pC), for the pulse of charge
     q_k just measured (c.i_ua, c.t_us, c.status) with Rp = rp_ohm: the drift
     prediction, then a jump that stays on the path of the measured pulse (mE curve or
     duration ceiling): on the skin model, else a Newton step; else the paper's step,
-    corrected when it enters the ceiling from a higher current. Returns the status."""
-    i_k = c.i_ua  # the measured pulse (_from_q reads it: restored for a retry)
+    corrected when it enters the ceiling from a higher current. line(c, rp) is Eq. 3,
+    from_q(c, qf) Eq. 4 with the bounds. Returns the status."""
+    i_k = c.i_ua  # the measured pulse (from_q reads it: restored for a retry)
     t_k = c.t_us
     s_k = c.status
     ceiling = s_k & _ST_T_MAX
     rp_at = drift(c, q_k, rp_ohm)
     if rp_at != rp_ohm:
-        qf = c._line(rp_at)
+        qf = line(c, rp_at)
     model = c.skin
     jumped = model.jumped
     model.jumped = 0
@@ -82,24 +86,28 @@ def fast_pulse(c, qf, q_k, rp_ohm):
     dq = qf - (q_k << 4)  # 1/16 pC
     if (dq if dq >= 0 else -dq) >= (i_k + (0 if ceiling else t_k)) << 3:
         if model.on and q_k > 0:
-            st = model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c.before)
+            st = model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c.before, from_q)
             if st >= 0:
                 return st
-            c._measured(i_k, t_k, s_k)
+            c.i_ua = i_k  # the measured pulse back (three stores: cheaper than a call)
+            c.t_us = t_k
+            c.status = s_k
             if st == -2:  # the model ran out of its work per pulse: the paper's step when
                 if c.model_cuts < _SAT30:  # it lowers the charge, else the charge held
                     c.model_cuts += 1
                 base = q_k << 4
-                return c._from_q(qf if qf < base else base)
+                return from_q(c, qf if qf < base else base)
         q_new = newton(c, qf, q_k, rp_ohm)
         if q_new != qf:
-            st = c._from_q(q_new)
+            st = from_q(c, q_new)
             if (st & _ST_T_MAX) == ceiling:
                 if c.fast_jumps < _SAT30:  # a counter must never become a long int
                     c.fast_jumps += 1
                 return st
-            c._measured(i_k, t_k, s_k)
-    st = c._from_q(qf)
+            c.i_ua = i_k
+            c.t_us = t_k
+            c.status = s_k
+    st = from_q(c, qf)
     i = c.i_ua
     if st == _ST_T_MAX and not ceiling and i < i_k:
         # entering the ceiling from the mE curve at a lower current I: Rp will rise
@@ -111,8 +119,10 @@ def fast_pulse(c, qf, q_k, rp_ohm):
             dr = muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
         rp2 = rp_ohm + least_elastic(dr)
         if rp2 <= _RP_MAX_OHM:
-            c._measured(i_k, t_k, s_k)
-            st = c._from_q(c._line(rp2))
+            c.i_ua = i_k
+            c.t_us = t_k
+            c.status = s_k
+            st = from_q(c, line(c, rp2))
     return st
 
 

@@ -3,9 +3,10 @@
 The paper's law, one function each: calibration mE = I0^2 T0 (Eq. 1,
 Controller._set_me) and mQ = (Q0 - y*) / (Rp0 - x*) (Eq. 2, Controller._set_mq);
 then, every pulse, the charge on the Q-Rp line Q = mQ (Rp - x*) + y* (Eq. 3,
-Controller._line) and the pulse I = mE / Q, T = Q^2 / mE (Eq. 4,
-Controller._from_q, with the bounds). Faults and bounds: Controller.update and
-_from_q; the baseline modes: Controller._fixed_current. MODE_FAST's step is in
+_line) and the pulse I = mE / Q, T = Q^2 / mE (Eq. 4, _from_q, with the
+bounds). Faults and bounds: Controller.update and _from_q; the baseline modes:
+_fixed_current (the three are functions of the Controller, also its methods).
+MODE_FAST's step is in
 fast_step.py, its skin model in skin_model.py, the integer arithmetic in
 fixmath.py. docs/controller.md maps every rule to its function.
 
@@ -26,6 +27,8 @@ except ImportError:  # CPython: the decorator does nothing
         @staticmethod
         def native(f):
             return f
+
+        viper = native
 
     def const(x):
         return x
@@ -90,8 +93,8 @@ def _check(name, v, lo, hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
-@micropython.native
-def _t_from_qf(qf, i0, t0):
+@micropython.viper
+def _t_from_qf(qf: int, i0: int, t0: int) -> int:
     """Eq. 4's T = Q^2 / mE, rounded, with Q = qf / 16 pC, mE = i0^2 t0; _T_SAT if huge.
 
     v = Q / i0 (= sqrt(T * t0)) in Q.16; T = v^2 / t0.
@@ -117,6 +120,111 @@ def rp_from_vp(vp_mv, i_ua):
     if vp_mv > VP_LIMIT_MV:
         return RP_OVER
     return (vp_mv * 1000 + (i_ua >> 1)) // i_ua
+
+
+@micropython.native
+def _line(c, rp_ohm):
+    """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
+    return c._y_q4 + muldiv(c._mq_num_pc, rp_ohm - c.x_star_ohm, c._mq_den_ohm, 4, c._line_cap_q4)
+
+
+def _fixed_current(c, mode, rp_ohm):
+    """The baseline laws: I = I0; T from the mode's law, then the bounds."""
+    t0 = c.t0_us
+    t = t0  # MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE (I0 * T0 held)
+    if mode == MODE_CONSTANT_ENERGY:  # Rp I0^2 T = Rp0 I0^2 T0
+        t = muldiv(t0, c.rp0_ohm, rp_ohm, 1, _MQ_CAP)
+        t = (t + 1) >> 1  # rounded
+    elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
+        dr = rp_ohm - c.rp0_ohm
+        x = muldiv(c._mq_num_pc, dr if dr >= 0 else -dr, c._mq_den_ohm, 1, _MQ_CAP)  # 2 mQ |dRp| in pC
+        x = (x + (c.i0_ua >> 1)) // c.i0_ua
+        t = t0 + x if dr >= 0 else t0 - x
+    i = c.i0_ua
+    st = ST_OK
+    if t > c.t_max_us:
+        t = c.t_max_us
+        st = ST_T_MAX
+    elif t < c.t_min_us:
+        t = c.t_min_us
+        st = ST_T_MIN
+    if i * t > c.q_max_pc:
+        t = c.q_max_pc // i
+        st |= ST_Q_MAX
+    c.i_ua = i
+    c.t_us = t
+    c.status = st
+    return st
+
+
+@micropython.viper
+def _from_q(c, qf: int) -> int:
+    """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0). (viper: machine
+    integers, every value below 2**30; a Python call is made only for div2,
+    _t_from_qf, isqrt_round and div_small.)"""
+    st = ST_OK
+    q_max_q4 = int(c._q_max_q4)
+    if qf > q_max_q4:
+        qf = q_max_q4
+        st = ST_Q_MAX
+    # Eq. 4: I = mE / Q, T = Q^2 / mE
+    i = int(div2(c._me16_hi, c._me16_lo, qf, 1))
+    t = int(_t_from_qf(qf, c.i0_ua, c.t0_us))
+    t_min = int(c.t_min_us)
+    t_max = int(c.t_max_us)
+    # duration bounds. Ceiling (ours: the paper has none): keep the charge on
+    # the Q-Rp line at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so
+    # I*T is within I/2 pC of Q (mE then above its value).
+    # Floor (Discussion: a sensation threshold): hold T, solve I from mE.
+    if t > t_max:
+        i = (qf + (t_max << 4) - 1) // (t_max << 4)
+        if int(c.i_ua) == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours
+            i += 1  # (Rp follows I, so the line's charge for I lies between the two)
+        t = t_max
+        if i <= int(c.i_max_ua):  # (above it the current ceiling below holds I at i_max)
+            t = (qf + (i << 3)) // (i << 4)
+            if t < t_min:  # T pinned (t_min near t_max): the current nearest Q / t_min (never above I)
+                t = t_min
+                i = (qf + (t_min << 3)) // (t_min << 4)
+        st |= ST_T_MAX
+    elif t < t_min:
+        t = t_min
+        i = int(isqrt_round(div_small(c._me_hi, c._me_lo, t_min)))
+        st |= ST_T_MIN
+    # current bounds: floor holds I and solves T; ceiling is safety (no mE)
+    i_min = int(c.i_min_ua)
+    i_max = int(c.i_max_ua)
+    if i < i_min:
+        i = i_min
+        st |= ST_I_MIN
+        t = int(div2(c._me_hi, c._me_lo, i * i, 1))
+        if t > t_max:
+            t = t_max
+            st |= ST_T_MAX
+        elif t < t_min:
+            t = t_min
+            st |= ST_T_MIN
+    elif i > i_max:
+        i = i_max
+        st |= ST_I_MAX
+    # charge ceiling (safety): shorten the pulse, then lower the current
+    q_max = int(c.q_max_pc)
+    if i * t > q_max:
+        st |= ST_Q_MAX
+        t = q_max // i
+        if t < t_min:
+            t = t_min
+            i = q_max // t_min
+    elif st == ST_OK and int(c.mode) == MODE_FAST:
+        # the integer pulse nearest the charge: I = round(Q / T), so I*T is
+        # within T/2 pC of Q (mE then within 1/(2T) of its value)
+        i2 = (qf + (t << 3)) // (t << 4)
+        if i_min <= i2 and i2 <= i_max and i2 * t <= q_max:
+            i = i2
+    c.i_ua = i
+    c.t_us = t
+    c.status = st
+    return st
 
 
 class Controller:
@@ -171,7 +279,7 @@ class Controller:
         self.t_min_us = t_min_us
         self.t_max_us = t_max_us
         self.q_max_pc = q_max_pc
-        self.skin.ltmax = log2q(t_max_us)
+        self.skin.limits(i_min_ua, i_max_ua, t_max_us, q_max_pc)
         self.calibrated = False
         self.i_ua = 0
         self.t_us = 0
@@ -195,12 +303,12 @@ class Controller:
         self._y_q4 = y_star_pc << 4
         self._q_max_q4 = self.q_max_pc << 4
         self._line_cap_q4 = (self.q_max_pc - y_star_pc) << 4
-        self.skin.lme = (log2q(i0_ua) << 1) + log2q(t0_us)
         self.i0_ua = i0_ua
         self.t0_us = t0_us
         self.rp0_ohm = rp0_ohm
         self.x_star_ohm = x_star_ohm
         self.y_star_pc = y_star_pc
+        self.skin.law(self)
         self.mq_last_fc_per_ohm = self.mq_target_fc_per_ohm
         self._forget()
         self.rp_ohm = rp0_ohm
@@ -298,13 +406,13 @@ class Controller:
             self.mq_last_fc_per_ohm = 0
         mode = self.mode
         if mode < MODE_AKHTAR:
-            return self._fixed_current(mode, rp_ohm)
-        qf = self._line(rp_ohm)
+            return _fixed_current(self, mode, rp_ohm)
+        qf = _line(self, rp_ohm)
         if qf <= 0:
             return self.stop(ST_Q_NONPOS)
         if mode != MODE_FAST:
-            return self._from_q(qf)
-        st = fast_pulse(self, qf, q_k, rp_ohm)
+            return _from_q(self, qf)
+        st = fast_pulse(self, qf, q_k, rp_ohm, _line, _from_q)
         b = self.before  # for the next secant, drift and two-pulse fit
         b.i_ua = i_k
         b.t_us = t_k
@@ -313,106 +421,9 @@ class Controller:
         b.clean = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
-    @micropython.native
-    def _line(self, rp_ohm):
-        """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
-        return self._y_q4 + muldiv(self._mq_num_pc, rp_ohm - self.x_star_ohm, self._mq_den_ohm, 4, self._line_cap_q4)
-
-    @micropython.native
-    def _measured(self, i_ua, t_us, status):
-        """Put back the measured pulse (_from_q reads it) before another proposal."""
-        self.i_ua = i_ua
-        self.t_us = t_us
-        self.status = status
-
-    def _fixed_current(self, mode, rp_ohm):
-        """The baseline laws: I = I0; T from the mode's law, then the bounds."""
-        t0 = self.t0_us
-        t = t0  # MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE (I0 * T0 held)
-        if mode == MODE_CONSTANT_ENERGY:  # Rp I0^2 T = Rp0 I0^2 T0
-            t = muldiv(t0, self.rp0_ohm, rp_ohm, 1, _MQ_CAP)
-            t = (t + 1) >> 1  # rounded
-        elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
-            dr = rp_ohm - self.rp0_ohm
-            x = muldiv(self._mq_num_pc, dr if dr >= 0 else -dr, self._mq_den_ohm, 1, _MQ_CAP)  # 2 mQ |dRp| in pC
-            x = (x + (self.i0_ua >> 1)) // self.i0_ua
-            t = t0 + x if dr >= 0 else t0 - x
-        i = self.i0_ua
-        st = ST_OK
-        if t > self.t_max_us:
-            t = self.t_max_us
-            st = ST_T_MAX
-        elif t < self.t_min_us:
-            t = self.t_min_us
-            st = ST_T_MIN
-        if i * t > self.q_max_pc:
-            t = self.q_max_pc // i
-            st |= ST_Q_MAX
-        self.i_ua = i
-        self.t_us = t
-        self.status = st
-        return st
-
-    @micropython.native
-    def _from_q(self, qf):
-        """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0)."""
-        st = ST_OK
-        if qf > self._q_max_q4:
-            qf = self._q_max_q4
-            st = ST_Q_MAX
-        # Eq. 4: I = mE / Q, T = Q^2 / mE
-        i = div2(self._me16_hi, self._me16_lo, qf, 1)
-        t = _t_from_qf(qf, self.i0_ua, self.t0_us)
-        t_min = self.t_min_us
-        t_max = self.t_max_us
-        # duration bounds. Ceiling (ours: the paper has none): keep the charge on
-        # the Q-Rp line at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so
-        # I*T is within I/2 pC of Q (mE then above its value).
-        # Floor (Discussion: a sensation threshold): hold T, solve I from mE.
-        if t > t_max:
-            i = (qf + (t_max << 4) - 1) // (t_max << 4)
-            if self.i_ua == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours
-                i += 1  # (Rp follows I, so the line's charge for I lies between the two)
-            t = t_max
-            if i <= self.i_max_ua:  # (above it the current ceiling below holds I at i_max)
-                t = (qf + (i << 3)) // (i << 4)
-                if t < t_min:  # T pinned (t_min near t_max): the current nearest Q / t_min (never above I)
-                    t = t_min
-                    i = (qf + (t_min << 3)) // (t_min << 4)
-            st |= ST_T_MAX
-        elif t < t_min:
-            t = t_min
-            i = isqrt_round(div_small(self._me_hi, self._me_lo, t_min))
-            st |= ST_T_MIN
-        # current bounds: floor holds I and solves T; ceiling is safety (no mE)
-        if i < self.i_min_ua:
-            i = self.i_min_ua
-            st |= ST_I_MIN
-            t = div2(self._me_hi, self._me_lo, i * i, 1)
-            if t > t_max:
-                t = t_max
-                st |= ST_T_MAX
-            elif t < t_min:
-                t = t_min
-                st |= ST_T_MIN
-        elif i > self.i_max_ua:
-            i = self.i_max_ua
-            st |= ST_I_MAX
-        # charge ceiling (safety): shorten the pulse, then lower the current
-        q_max = self.q_max_pc
-        if i * t > q_max:
-            st |= ST_Q_MAX
-            t = q_max // i
-            if t < t_min:
-                t = t_min
-                i = q_max // t_min
-        elif st == ST_OK and self.mode == MODE_FAST:
-            # the integer pulse nearest the charge: I = round(Q / T), so I*T is
-            # within T/2 pC of Q (mE then within 1/(2T) of its value)
-            i2 = (qf + (t << 3)) // (t << 4)
-            if self.i_min_ua <= i2 <= self.i_max_ua and i2 * t <= q_max:
-                i = i2
-        self.i_ua = i
-        self.t_us = t
-        self.status = st
-        return st
+    # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions of the Controller
+    # (update and fast_step call them as functions: a method call on this object, whose
+    # attribute map is large, costs ~16 us more on the chip)
+    _line = _line
+    _from_q = _from_q
+    _fixed_current = _fixed_current

@@ -61,9 +61,9 @@ _L_1MA = const(653118)  # log2(1000 uA): the model's reference current
 _L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
 _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _L_LN2 = const(-34653)  # log2(ln 2)
-NOROOT = const(-0x3FFFFFFF)  # "no sign change": what SkinModel.root and g return then
+NOROOT = const(-0x3FFFFFFF)  # "no sign change": what _root and _law_q return then
 
-# what SkinModel.g(kind, x, lc, p, o) measures, x being the unknown
+# what _root's g(kind, x, lc) measures, x being the unknown (p, o: the pulses it reads)
 _K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
 _K_PEEL = const(1)  # x = log2 contact change since pulse o: the model reads pulse p's Rp
 _K_LAW = const(2)  # x = log2 Q on the mE curve: the law L(Rp(Q)) - Q
@@ -73,40 +73,49 @@ _K_RP = const(5)  # not a root: the model's Rp itself for x = log2 S at pulse p 
 # (g compares logarithms: log2 of the model's Rp or charge less log2 of the one it must
 # equal, nearly linear in x, so the regula falsi needs few evaluations)
 
-# SkinModel.v (an array('i')): what _root reads, copied there by SkinModel.root for its kind
-_V_RS = const(0)  # Rs (ohm)
-_V_BETA = const(1)  # beta, Q.16
-_V_LS = const(2)  # log2 S (_K_LAW, _K_CEIL)
-_V_LC = const(3)  # log2 Cp (_K_PEEL, _K_LAW, _K_CEIL)
-_V_LME = const(4)  # log2 mE (_K_LAW)
-_V_LTMAX = const(5)  # log2 t_max (_K_CEIL)
-_V_PLI = const(6)  # pulse p: log2 I, log2 T, Rp
-_V_PLT = const(7)
-_V_PRP = const(8)
-_V_OLI = const(9)  # pulse o: log2 I, log2 T, Rp, log2 S
-_V_OLT = const(10)
-_V_ORP = const(11)
-_V_OLS = const(12)
-_V_LCTWO = const(13)  # log2 Cp found by the last _K_TWO evaluation
-_V_YQ4 = const(14)  # the controller's Eq. 3 (_K_LAW, _K_CEIL): y* (1/16 pC), mQ's numerator (pC),
-_V_MQN = const(15)  # x* (ohm), mQ's denominator (ohm), q_max - y* (1/16 pC)
-_V_XS = const(16)  # (-x*: a 64-bit viper reads a ptr32 word unsigned, so v holds no negative
-# value; _V_LS, _V_LC, _V_OLS, _V_LCTWO are kept + _V_BIAS for the same reason)
-_V_MQD = const(17)
-_V_LCAP = const(18)
-_V_PRLP = const(19)  # log2 of pulse p's Rp
-_V_ORLP = const(20)  # log2 of pulse o's Rp
-_V_WORK = const(21)  # work units spent since the jump began (SkinModel.jump)
-_V_CUT = const(22)  # 1: a root search of this jump ran out of FAST_MODEL_WORK_MAX
-_V_N = const(23)
+# SkinModel.v (an array('i')): everything _root reads, so that a search is one call with no
+# attribute lookup (the chip pays ~10 us per call and per lookup; this is why the pulses the
+# model reads live here, not in objects). Values never negative: a 64-bit viper reads a ptr32
+# word unsigned, so log2 S and log2 Cp are kept + _V_BIAS.
+_V_RS = const(0)  # the fitted parameters: Rs (ohm), beta (Q.16)
+_V_BETA = const(1)
+_V_LS = const(2)  # the model's log2 S and log2 Cp now (SkinModel.ls, .lc), + _V_BIAS
+_V_LC = const(3)
+_V_LME = const(4)  # the law (SkinModel.law, .limits): log2 mE, log2 t_max,
+_V_LTMAX = const(5)
+_V_YQ4 = const(6)  # and the controller's Eq. 3: y* (1/16 pC), mQ's numerator (pC),
+_V_MQN = const(7)  # -x* (ohm), mQ's denominator (ohm), q_max - y* (1/16 pC)
+_V_XS = const(8)
+_V_MQD = const(9)
+_V_LCAP = const(10)
+_V_LCTWO = const(11)  # log2 Cp found by the last _K_TWO evaluation, + _V_BIAS
+_V_WORK = const(12)  # work units spent since the jump began (SkinModel.jump)
+_V_CUT = const(13)  # 1: a root search of this jump ran out of FAST_MODEL_WORK_MAX
+_V_LQK = const(14)  # log2 of the charge of the pulse just measured (pC)
+_V_LQMAX = const(30)  # the limits (SkinModel.limits): log2 q_max, log2 i_min, log2 i_max
+_V_LIMIN = const(31)
+_V_LIMAX = const(32)
+# three pulses of _P_N words each: the pulse just measured, the one before it, and the
+# pulse SkinModel.rp reads; _root is told which two it reads (p, o) in its kind argument
+_V_NOW = const(15)
+_V_BEFORE = const(20)
+_V_PROBE = const(25)
+_P_LI = const(0)  # log2 I (uA), Q.16
+_P_LT = const(1)  # log2 T (us), Q.16
+_P_RP = const(2)  # the Rp measured on it (ohm)
+_P_RLP = const(3)  # log2 of that Rp
+_P_LS = const(4)  # log2 S with which the model reads it (set for the pulse before), + _V_BIAS
+_V_N = const(33)
 _V_BIAS = const(0x10000000)
 
 
 @micropython.viper
 def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
-    """SkinModel.root on the values in vv (SkinModel.v; _load copies them there): x in
-    [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16;
-    NOROOT if the ends have one sign or g fails. With b < a: g(kind, a, lc0) itself.
+    """x in [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16,
+    on the values in vv (SkinModel.v); NOROOT if the ends have one sign or g fails. With
+    b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16), p and o the
+    pulses read (_V_NOW, _V_BEFORE, _V_PROBE). _K_ANCHOR finds its own range from pulse
+    p, R(I) >= Rp - Rs up to 16 times more (a, b are not read).
     One machine-code function (viper) with the model's Rp and fixmath.exp2q's
     interpolation inline: no call per evaluation. Every value is below 2**30, so
     32-bit (ARM) and 64-bit words give Python's results; the interpolation
@@ -116,6 +125,31 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     g2 = ptr32(_LOG_TAB)
     beta = v[_V_BETA]
     rs = v[_V_RS]
+    pb = (kind >> 8) & 0xFF
+    ob = kind >> 16
+    kind = kind & 0xFF
+    if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
+        n = v[pb + _P_RP] - rs  # lo = log2q(n) + mul_q16(log2 I - log2 1 mA, beta), inline
+        if n < 16:
+            return NOROOT
+        k = 22
+        while n >= 0x800000:
+            n >>= 1
+            k += 1
+        while n < 0x400000:
+            n <<= 1
+            k -= 1
+        eu = (n >> 16) - 64
+        ea = g2[eu]
+        eb = g2[eu + 1]
+        m = n & 0xFFFF
+        w = m >> 8
+        a = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+        ma = v[pb + _P_LI] - _L_1MA
+        mc = -ma if ma < 0 else ma
+        my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+        a += -my if ma < 0 else my
+        b = a + 0x40000
     only = 1 if b < a else 0
     x0 = lc0 if kind == _K_LAW else 0  # _K_LAW: lc0 is a guess of the root (else 0)
     if not only:
@@ -136,8 +170,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         ok = 1
         if kind == _K_ANCHOR or kind == _K_RP:
             ls = x
-            li = v[_V_PLI]
-            lt = v[_V_PLT]
+            li = v[pb + _P_LI]
+            lt = v[pb + _P_LT]
         elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
             mb = beta - 0x10000  # mul_q16(x, mb), inline
             ma = -x if x < 0 else x
@@ -147,10 +181,10 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 my = my if mb < 0 else -my
             elif mb < 0:
                 my = -my
-            ls = v[_V_OLS] - _V_BIAS + my
+            ls = v[ob + _P_LS] - _V_BIAS + my
             lc = v[_V_LC] - _V_BIAS + x
-            li = v[_V_PLI]
-            lt = v[_V_PLT]
+            li = v[pb + _P_LI]
+            lt = v[pb + _P_LT]
         elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
             ls = v[_V_LS] - _V_BIAS
             lc = v[_V_LC] - _V_BIAS
@@ -176,7 +210,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 r = 0
             else:
                 r = (m + (1 << (21 - n))) >> (22 - n)
-            n = r - v[_V_PRP] + rs  # my = log2q(n), inline
+            n = r - v[pb + _P_RP] + rs  # my = log2q(n), inline
             if n < 1:
                 n = 1
             k = 22
@@ -194,8 +228,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
             my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
             ls = 0
-            li = v[_V_OLI]
-            lt = v[_V_OLT]
+            li = v[ob + _P_LI]
+            lt = v[ob + _P_LT]
             if my <= 0:
                 ok = 0
             else:
@@ -215,8 +249,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 m = n & 0xFFFF
                 w = m >> 8
                 lc = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-                lc = v[_V_PLT] - x + _L_1E6 - (lc - 0x100000 + _L_LN2)
-                ma = v[_V_PLI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+                lc = v[pb + _P_LT] - x + _L_1E6 - (lc - 0x100000 + _L_LN2)
+                ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
                 mc = -ma if ma < 0 else ma
                 my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
                 ls = x + (-my if ma < 0 else my)
@@ -339,7 +373,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 m = n & 0xFFFF
                 w = m >> 8
                 my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-                fx = my - (v[_V_ORLP] if kind == _K_TWO else v[_V_PRLP])
+                fx = my - (v[ob + _P_RLP] if kind == _K_TWO else v[pb + _P_RLP])
             else:
                 # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
                 if rp > _RP_MAX_OHM:
@@ -447,19 +481,112 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     return b
 
 
-class LogPulse:
-    """A measured pulse as the model reads it."""
+@micropython.viper
+def _pulse(vv, base: int, i: int, t: int, rp: int):
+    """A pulse into vv at base (_V_NOW, _V_BEFORE, _V_PROBE): log2 I, log2 T, Rp and log2 Rp
+    (fixmath.log2q, inline). _V_NOW, the pulse a jump starts from, also sets log2 Q and
+    the jump's work to 0."""
+    v = ptr32(vv)
+    g2 = ptr32(_LOG_TAB)
+    v[base + _P_RP] = rp
+    last = 3
+    if base == _V_NOW:
+        v[_V_WORK] = 0
+        v[_V_CUT] = 0
+        last = 4
+    j = 0
+    while j < last:
+        if j == 0:
+            n = i
+        elif j == 1:
+            n = t
+        elif j == 2:
+            n = rp
+        else:
+            n = i * t
+        if n < 1:
+            n = 1
+        k = 22
+        while n >= 0x800000:
+            n >>= 1
+            k += 1
+        while n < 0x400000:
+            n <<= 1
+            k -= 1
+        eu = (n >> 16) - 64
+        ea = g2[eu]
+        eb = g2[eu + 1]
+        m = n & 0xFFFF
+        w = m >> 8
+        n = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+        if j == 0:
+            v[base + _P_LI] = n
+        elif j == 1:
+            v[base + _P_LT] = n
+        elif j == 2:
+            v[base + _P_RLP] = n
+        else:
+            v[_V_LQK] = n
+        j += 1
 
-    def __init__(self):
-        self.li = 0  # log2 I (uA), Q.16
-        self.lt = 0  # log2 T (us), Q.16
-        self.rp_ohm = 0  # the Rp measured on it
-        self.ls = 0  # log2 S (ohm at 1 mA) with which the model reads it (set for the pulse before)
+
+@micropython.viper
+def _law_q(vv, lq_k: int) -> int:
+    """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
+    measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
+    4 Q_k, from Q_k on), else on the line at t_max; NOROOT if none. Machine code with
+    the values in vv: no attribute lookup (fixmath.exp2q inline)."""
+    v = ptr32(vv)
+    lq_max = v[_V_LQMAX]
+    ltmax = v[_V_LTMAX]
+    hi = lq_k + 0x20000
+    if hi > lq_max:
+        hi = lq_max
+    lq_t = (v[_V_LME] + ltmax) >> 1  # the mE curve's charge at t_max
+    if hi >= lq_t:
+        hi = lq_t
+        if int(_root(vv, _K_LAW, hi, hi - 1, 0)) > 0:  # more than the curve gives at t_max
+            lo = v[_V_LIMIN]
+            hi = lq_max - ltmax
+            x = v[_V_LIMAX]
+            if x < hi:
+                hi = x
+            if hi <= lo:
+                return NOROOT
+            x = int(_root(vv, _K_CEIL, lo, hi, 0))
+            if x == NOROOT:
+                return NOROOT
+            n = x + ltmax + 0x40000  # log2 of I t_max in 1/16 pC
+        else:
+            n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
+            if n == NOROOT:
+                return NOROOT
+            n += 0x40000
+    else:
+        n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
+        if n == NOROOT:
+            return NOROOT
+        n += 0x40000
+    e = ptr32(_EXP_TAB)  # exp2q(n), inline
+    k = (n & 0xFFFF) >> 10
+    eu = n & 0x3FF
+    n = n >> 16
+    ea = e[k]
+    eb = e[k + 1]
+    w = eu >> 2
+    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+    if n >= 22:
+        return m << (n - 22)
+    if n < -2:
+        return 0
+    return (m + (1 << (21 - n))) >> (22 - n)
 
 
 class SkinModel:
-    """The model's fitted parameters, the two pulses it reads and its last answer.
-    Built once by the Controller (`c`: its limits, mE and Eq. 3 are read from it)."""
+    """The model's fitted parameters, the pulses it reads and its last answer. Built once
+    by the Controller (`c`: its limits, mE and Eq. 3 are copied from it by limits/law).
+    The pulses (the one just measured, the one before it) are kept in self.v (_V_NOW,
+    _V_BEFORE), where the machine-code search reads them."""
 
     def __init__(self, c):
         self.c = c
@@ -469,14 +596,11 @@ class SkinModel:
         self.lc_set = 0  # fitted: log2 Cp (pF) as set
         self.lc = 0  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
         self.ls = 0  # log2 S, anchored on the last jump
-        self.lc_two = 0  # log2 Cp found by the last _K_TWO evaluation
-        self.lme = 0  # log2 mE (uA^2 us), from the calibration
-        self.ltmax = 0  # log2 t_max (us), from the limits
-        self.now = LogPulse()  # the pulse just measured
-        self.before = LogPulse()  # the pulse measured before it
         self.jumped = 0  # 1: the pulse just measured was a model jump
         self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
         self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*)
+        self.v[_V_LS] = _V_BIAS
+        self.v[_V_LC] = _V_BIAS
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -485,140 +609,73 @@ class SkinModel:
         else:
             self.on = 1
             self.lc_set = log2q(cp_pf)
-            self.lc = self.lc_set
+            self._set_lc(self.lc_set)
         self.rs_ohm = rs_ohm
         self.beta_q16 = beta_q16
         self.v[_V_RS] = rs_ohm
         self.v[_V_BETA] = beta_q16
         self.jumped = 0
 
+    def limits(self, i_min_ua, i_max_ua, t_max_us, q_max_pc):
+        """The controller's limits as the model reads them (Controller.set_limits)."""
+        v = self.v
+        v[_V_LTMAX] = log2q(t_max_us)
+        v[_V_LIMIN] = log2q(i_min_ua)
+        v[_V_LIMAX] = log2q(i_max_ua)
+        v[_V_LQMAX] = log2q(q_max_pc)
+
+    def law(self, c):
+        """The law as the model reads it: log2 mE and Eq. 3 (Controller.calibrate)."""
+        v = self.v
+        v[_V_LME] = (log2q(c.i0_ua) << 1) + log2q(c.t0_us)
+        v[_V_YQ4] = c._y_q4
+        v[_V_MQN] = c._mq_num_pc
+        v[_V_XS] = -c.x_star_ohm
+        v[_V_MQD] = c._mq_den_ohm
+        v[_V_LCAP] = c._line_cap_q4
+
+    @micropython.native
+    def _set_lc(self, lc):
+        self.lc = lc
+        self.v[_V_LC] = lc + _V_BIAS
+
     @micropython.native
     def rp(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
         pulse with log2 I = li, log2 T = lt (_root's model, read as an anchor on Rp 0)."""
         v = self.v
-        v[_V_PLI] = li
-        v[_V_PLT] = lt
-        return _root(v, _K_RP, ls, ls - 1, lc)
-
-    @micropython.viper
-    def _load(self, kind: int, p, o):
-        """Copy into self.v what _root reads for this kind (pulses p, o; the law's line)."""
-        vv = self.v
-        v = ptr32(vv)
-        if kind == _K_LAW or kind == _K_CEIL:  # (the rest: _begin)
-            v[_V_LS] = int(self.ls) + _V_BIAS
-            v[_V_LC] = int(self.lc) + _V_BIAS
-            return
-        v[_V_PLI] = int(p.li)
-        v[_V_PLT] = int(p.lt)
-        v[_V_PRP] = int(p.rp_ohm)
-        v[_V_PRLP] = int(log2q(int(p.rp_ohm)))
-        if kind == _K_PEEL:
-            v[_V_LC] = int(self.lc) + _V_BIAS
-            v[_V_OLS] = int(o.ls) + _V_BIAS
-        elif kind == _K_TWO:
-            v[_V_OLI] = int(o.li)
-            v[_V_OLT] = int(o.lt)
-            v[_V_ORP] = int(o.rp_ohm)
-            v[_V_ORLP] = int(log2q(int(o.rp_ohm)))
-
-    @micropython.viper
-    def _begin(self):
-        """A jump begins: no evaluation yet; the law's values (mE, t_max, Eq. 3) into self.v."""
-        v = ptr32(self.v)
-        v[_V_WORK] = 0
-        v[_V_CUT] = 0
-        v[_V_LME] = int(self.lme)
-        v[_V_LTMAX] = int(self.ltmax)
-        c = self.c
-        v[_V_YQ4] = int(c._y_q4)
-        v[_V_MQN] = int(c._mq_num_pc)
-        v[_V_XS] = -int(c.x_star_ohm)
-        v[_V_MQD] = int(c._mq_den_ohm)
-        v[_V_LCAP] = int(c._line_cap_q4)
-
-    @micropython.native
-    def g(self, kind, x, lc, p, o):
-        """The function of x whose sign change root() finds (kinds _K_*; p, o: pulses)."""
-        self._load(kind, p, o)
-        r = _root(self.v, kind, x, x - 1, lc)
-        if kind == _K_TWO:
-            self.lc_two = self.v[_V_LCTWO] - _V_BIAS
-        return r
-
-    @micropython.viper
-    def root(self, kind: int, a: int, b: int, lc: int, p, o) -> int:
-        """x in [a, b] where g(kind, x, lc, p, o) changes sign (Illinois' regula falsi),
-        to 1/2**16; NOROOT if the ends have one sign or g fails (_load, then _root)."""
-        self._load(kind, p, o)
-        return int(_root(self.v, kind, a, b, lc))
-
-    @micropython.native
-    def anchor(self, p, lc):
-        """log2 S with which the model (log2 Cp = lc) reads pulse p, or NOROOT.
-        R(I) >= Rp - Rs, so S is searched from there up to 16 times more."""
-        d = p.rp_ohm - self.rs_ohm
-        if d < 16:
-            return NOROOT
-        lo = log2q(d) + mul_q16(p.li - _L_1MA, self.beta_q16)
-        return self.root(_K_ANCHOR, lo, lo + 0x40000, lc, p, p)
-
-    @micropython.native
-    def law_q(self, lq_k):
-        """The law's charge (1/16 pC) on the model skin: on the mE curve up to t_max
-        (searched from Q_k/4 to 4 Q_k), else on the line at t_max; NOROOT if none."""
-        c = self.c
-        lq_max = log2q(c.q_max_pc)
-        hi = lq_k + 0x20000
-        if hi > lq_max:
-            hi = lq_max
-        lq_t = (self.lme + self.ltmax) >> 1  # the mE curve's charge at t_max
-        if hi >= lq_t:
-            hi = lq_t
-            if self.g(_K_LAW, hi, 0, None, None) > 0:  # more than the curve gives at t_max
-                lo = log2q(c.i_min_ua)
-                hi = lq_max - self.ltmax
-                x = log2q(c.i_max_ua)
-                if x < hi:
-                    hi = x
-                li = self.root(_K_CEIL, lo, hi, 0, None, None) if hi > lo else NOROOT
-                if li == NOROOT:
-                    return NOROOT
-                return exp2q(li + self.ltmax + 0x40000)
-        lq = self.root(_K_LAW, lq_k - 0x20000, hi, lq_k, None, None)  # guess: the charge just delivered
-        if lq == NOROOT:
-            return NOROOT
-        return exp2q(lq + 0x40000)
+        v[_V_PROBE + _P_LI] = li
+        v[_V_PROBE + _P_LT] = lt
+        return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
     @micropython.native
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
         when within 1/8 ... 2 x the Cp set."""
-        now = self.now
-        before = self.before
+        v = self.v
         b = self.beta_q16
-        z0 = before.lt + mul_q16(before.li - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
-        z1 = now.lt + mul_q16(now.li - _L_1MA, b)
+        z0 = v[_V_BEFORE + _P_LT] + mul_q16(v[_V_BEFORE + _P_LI] - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
+        z1 = v[_V_NOW + _P_LT] + mul_q16(v[_V_NOW + _P_LI] - _L_1MA, b)
         if z0 > z1:  # (two names, not a tuple: a tuple would be allocated in MicroPython)
-            p = now
-            o = before
+            p = _V_NOW
+            o = _V_BEFORE
         else:
-            p = before
-            o = now
-        d = p.rp_ohm - self.rs_ohm
+            p = _V_BEFORE
+            o = _V_NOW
+        d = v[p + _P_RP] - self.rs_ohm
         if d >= 16:
             lo = log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
-            lr = self.root(_K_TWO, lo, lo + 0x40000, 0, p, o)
+            kind = _K_TWO + (p << 8) + (o << 16)
+            lr = _root(v, kind, lo, lo + 0x40000, 0)
             if lr != NOROOT:
-                self.g(_K_TWO, lr, 0, p, o)  # (sets lc_two for the root itself)
-                lc = self.lc_two
+                _root(v, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
+                lc = v[_V_LCTWO] - _V_BIAS
                 if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
-                    self.lc = lc
+                    self._set_lc(lc)
 
     @micropython.native
-    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev):
+    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev, from_q):
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
         prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
@@ -626,50 +683,51 @@ class SkinModel:
         the contact hypothesis is also solved and the smaller charge taken. Returns the
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
-        step: never the larger hydration answer nor a search's unfinished value)."""
-        self._begin()
+        step: never the larger hydration answer nor a search's unfinished value).
+        q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
+        with the bounds (sensation_core._from_q)."""
         v = self.v
-        now = self.now
-        before = self.before
-        now.li = log2q(i_k)
-        now.lt = log2q(t_k)
-        now.rp_ohm = rp_ohm
+        _pulse(v, _V_NOW, i_k, t_k, rp_ohm)
         p0rp = prev.rp_ohm
         if p0rp > 0:
-            before.li = log2q(prev.i_ua)
-            before.lt = log2q(prev.t_us)
-            before.rp_ohm = p0rp
+            _pulse(v, _V_BEFORE, prev.i_ua, prev.t_us, p0rp)
         if jumped and p0rp > 0:
             miss = rp_ohm - self.predicted_rp_ohm
-            dl = now.li - before.li
+            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
                 self.refit_cp()
-        ls = self.anchor(now, self.lc)
+        ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
-        self.ls = ls
-        lq_k = log2q(q_k)
-        q16 = self.law_q(lq_k)
+        self.ls = ls  # (self._set_ls(ls), inline: a call is ~10 us on the chip)
+        v[_V_LS] = ls + _V_BIAS
+        lq_k = v[_V_LQK]
+        q16 = _law_q(v, lq_k)
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
         if q16 > q_k << 4 and not jumped and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
-            ls0 = self.anchor(before, self.lc)
+            ls0 = _root(v, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, self.lc)  # and on the one before
             if ls0 != NOROOT:
-                before.ls = ls0
-                la = self.root(_K_PEEL, -0x30000, 0x10000, 0, now, before)
+                v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
+                la = _root(v, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0)
                 if la != NOROOT:
                     ls1 = self.ls
                     lc1 = self.lc
-                    self.ls = ls0 + mul_q16(la, self.beta_q16 - 0x10000)
+                    ls = ls0 + mul_q16(la, self.beta_q16 - 0x10000)
+                    self.ls = ls  # (_set_ls, _set_lc inline)
+                    v[_V_LS] = ls + _V_BIAS
                     self.lc = lc1 + la
-                    q2 = self.law_q(lq_k)
+                    v[_V_LC] = lc1 + la + _V_BIAS
+                    q2 = _law_q(v, lq_k)
                     if q2 != NOROOT and q2 < q16:
                         q16 = q2
                     else:
                         self.ls = ls1
+                        v[_V_LS] = ls1 + _V_BIAS
                         self.lc = lc1
+                        v[_V_LC] = lc1 + _V_BIAS
             if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
                 return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
@@ -680,8 +738,9 @@ class SkinModel:
         if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
-        st = c._from_q(q16)
-        self.predicted_rp_ohm = self.rp(self.ls, self.lc, log2q(c.i_ua), log2q(c.t_us))
+        st = from_q(c, q16)
+        _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
+        self.predicted_rp_ohm = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
         self.jumped = 1
         if c.model_jumps < _SAT30:
             c.model_jumps += 1

@@ -84,8 +84,10 @@ def _sim_flash(tmp_path_factory):
 
 # `make test` runs the suite on every core (pytest-xdist, --dist loadgroup). Tests that share one
 # resource run in one worker, one after another: the emulated Pico's cache (.cache/chip: npm, .mpy
-# files, flash images) and its CPU-heavy boots; LSL's one loopback network (streams resolved by name).
-_GROUPS = (("chip", "emu"), ("flash", "emu"), ("test_emu_transport.py", "emu"), ("lab", "lsl"))
+# files, flash images) and its CPU-heavy boots; LSL's one loopback network (streams resolved by name);
+# a module whose fixture checks at its end what all its tests did (test_core_micropython's count).
+_GROUPS = (("chip", "emu"), ("flash", "emu"), ("test_emu_transport.py", "emu"), ("lab", "lsl"),
+           ("test_core_micropython.py", "mp_core"))
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups

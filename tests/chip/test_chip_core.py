@@ -1,0 +1,50 @@
+"""The core's worst update on the emulated chip (issue 12, deliverable 3): MODE_FAST with
+the skin model fitted by host/skin.py, replaying the closed loops of bench/controllers.py
+with the most model work (bench/core_chip.py: the Rp each pulse read in CPython fed to the
+chip's Controller.update). Emulated microseconds are deterministic: every update of the
+replay takes at most 2000 us, and the chip's pulses are CPython's."""
+
+import importlib.util
+import sys
+
+from .harness import ROOT
+
+# the heaviest jumps of bench/core_chip.py's table, their first UPDATES updates: a fresh
+# rise that spends FAST_MODEL_WORK_MAX (gel soaking in: anchor, law, contact anchor, search
+# and law, cut), and a jump on most pulses under 0.3 % Rp noise
+CASES = (("gel", 0.0), ("step +20 700", 0.003))
+UPDATES = 160
+WORST_US = 2000
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("core_chip", ROOT / "bench" / "core_chip.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_worst_update_with_the_skin_model_within_2_ms(chip, tmp_path):
+    bench = _bench()
+    saved = list(sys.path)
+    try:
+        want = bench.closed_loops(tmp_path, CASES, UPDATES)
+    finally:
+        sys.path[:] = saved
+    for k in range(len(CASES)):
+        chip.put((tmp_path / f"cl_{k}.bin").read_bytes(), f"/cl_{k}.bin")
+    out = chip.exec(bench.CLOSED.replace("PAD", "0"), timeout_ms=300000)
+    rows = [ln.split() for ln in out.splitlines() if ln.startswith("CASE")]
+    assert len(rows) == len(CASES), out
+    worst = {}
+    cut = 0
+    for row, (label, h) in zip(rows, want):
+        _, _k, n, _med, _p99, w, hc, jumps, cuts = row
+        assert int(n) == UPDATES
+        assert int(hc) == h, (label, "the chip's pulses differ from CPython's")
+        assert int(jumps) >= 1, (label, "the replay made no model jumps: it tests nothing")
+        worst[label] = int(w)
+        cut += int(cuts)
+    assert max(worst.values()) <= WORST_US, worst
+    assert min(worst.values()) >= 1000, worst  # each replay does reach the model's heavy jumps
+    assert cut >= 1  # and a jump that spent the whole FAST_MODEL_WORK_MAX
