@@ -50,7 +50,6 @@ _T_FLOOR_US = hp.T_FLOOR_US
 _RP_MIN_OHM = sc.RP_MIN_OHM
 _RP_MAX_OHM = sc.RP_MAX_OHM
 _ST_FAULT_MASK = sc.ST_FAULT_MASK
-_rp_from_vp = sc.rp_from_vp
 # A whole telemetry report (bytes 0..O_RATE; the rest stays 0) in one
 # struct.pack_into, allocation-free also on the rp2 (every value is a small int):
 # the same bytes as writing the fields one by one, in one call. Checked at import.
@@ -183,6 +182,7 @@ class Stimulator:
                              % (keepalive_ms, hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
         self.keepalive_ms = keepalive_ms
         self.last_host = clock.ticks_us()
+        self._ticks_diff = clock.ticks_diff  # bound once (the frame's keep-alive check)
         self.tx = bytearray(hp.REPORT_LEN)  # replies to commands
         self.tel = [bytearray(hp.REPORT_LEN) for _ in range(n)]  # each channel's telemetry, sent after the pulses
         self.rx = bytearray(hp.REPORT_LEN)
@@ -258,8 +258,9 @@ class Stimulator:
         self.sat_loop_us = v if v < 0xFFFF else 0xFFFF
         board.feed_watchdog()
         self._enter()  # one heap-locked section for the pulses and their control
-        if self.keepalive_ms:  # before any pulse: none fires once the host is overdue
-            self._check_keepalive(now)
+        ka = self.keepalive_ms
+        if ka and self._ticks_diff(now, self.last_host) > ka * 1000:  # before any pulse: none fires
+            self._check_keepalive()  # once the host is overdue
         chans = self.chans
         overlap = self._overlap
         n = self.n
@@ -281,7 +282,8 @@ class Stimulator:
         while k < n:
             board.send(tel[k])
             k += 1
-        self._serve_commands(now)
+        if board.recv(self.rx):  # a command waits (most frames: none)
+            self._serve_commands(now)
         self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     @micropython.native
@@ -330,12 +332,11 @@ class Stimulator:
 
     @micropython.native
     def _serve_commands(self, now):
-        """The host's commands: the first waiting one always, more while a command's
-        time (hp.FRAME_CMD_US) remains before the next deadline; the rest wait."""
+        """The host's commands, the first already in self.rx: it is served always,
+        more while a command's time (hp.FRAME_CMD_US) remains before the next
+        deadline; the rest wait."""
         board = self.board
         rx = self.rx
-        if not board.recv(rx):  # none waiting (most frames)
-            return
         clk = self.clock
         end = clk.ticks_add(now, self.period_us - hp.FRAME_CMD_US)
         m = 0
@@ -375,7 +376,6 @@ class Stimulator:
         c.ai = 0  # the output must be set again before any pulse
         c.ad = 0
 
-    @micropython.native
     def _measure(self, c):
         """Vp: the peak of the captured pulse in mV, the largest median of 3
         neighbouring samples, so a single-sample spike cannot set it (fewer than 3
@@ -393,8 +393,7 @@ class Stimulator:
             v = _peak3(buf, n)
         vp = v * self.uv_per_count // 1000
         c.vp = vp
-        di = c.di
-        c.rp = _rp_from_vp(vp, di) if di else 0
+        c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0
 
     @micropython.native
     def _supervise(self, c):
@@ -444,15 +443,14 @@ class Stimulator:
         c.i = ni
         c.t = nt
 
-    @micropython.native
-    def _check_keepalive(self, now):
-        if self.clock.ticks_diff(now, self.last_host) > self.keepalive_ms * 1000:
-            k = 0
-            while k < self.n:
-                c = self.chans[k]
-                if c.armed:
-                    self._latch(c, hp.STOP_KEEPALIVE)
-                k += 1
+    def _check_keepalive(self):
+        """The host is overdue (frame checked it): every armed channel is latched."""
+        k = 0
+        while k < self.n:
+            c = self.chans[k]
+            if c.armed:
+                self._latch(c, hp.STOP_KEEPALIVE)
+            k += 1
 
     @micropython.native
     def _output(self, c):
