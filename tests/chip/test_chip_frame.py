@@ -8,26 +8,11 @@ import pytest
 
 import sensation_core as sc
 
-from .harness import make_board
+from .harness import frame_setup
 
 US = 1000  # ns
-LOAD = {"rs_ohm": 500, "rp_ohm": 20000, "tau_us": 450, "open": False}
 
-JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)]}  # Rp jumping every pulse: a skin model's search each time
-SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/chip.py)
-
-RUN = """
-s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, {rate})
-reps = []
-if {t0} > s.lim[3]:  # the boot default keeps room for a skin model; without one t_max may go higher
-    reps.append(hp.cmd_set_limits(bytearray(64), s.lim[0], s.lim[1], s.lim[2], {t0}, s.lim[4]))
-reps += [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
-if {skin}:
-    reps.append(hp.cmd_set_skin(bytearray(64), hp.CH_ALL, {skin_args}))
-reps.append(hp.cmd_arm(bytearray(64), hp.CH_ALL))
-for rep in reps:
-    assert s.handle(rep, time.ticks_us()) == hp.RES_OK, rep[0]
-s.sync_outputs()
+FRAMES = """
 o0 = s.overruns
 loops = []
 for f in range({frames} + 2):
@@ -38,11 +23,7 @@ print((s.overruns - o0, s.errors, max(loops), [c.stop for c in s.chans], [c.dt f
 
 
 def run(chip, cfg, n, rate, mode, t0, frames, skin=False):
-    make_board(chip, cfg, n_channels=n)
-    for k in range(n):
-        chip.host.call("load", ch=k, load=JUMP if skin else LOAD)
-    out = chip.eval_out(RUN.format(n=n, rate=rate, mode=mode, t0=t0, frames=frames, skin=skin,
-                                   skin_args=", ".join(map(str, SKIN))))
+    out = chip.eval_out(frame_setup(chip, cfg, n, rate, mode, t0, skin) + FRAMES.format(frames=frames))
     return out, chip.take()
 
 
@@ -101,10 +82,7 @@ def test_an_error_while_a_pulse_is_delivered_lowers_its_gate_at_once(chip, cfg):
     and no pulse follows."""
     import hid_protocol as hp
 
-    make_board(chip, cfg, n_channels=2)
-    for k in range(2):
-        chip.host.call("load", ch=k, load=LOAD)
-    out = chip.eval_out(RUN.format(n=2, rate=50, mode=sc.MODE_AKHTAR, t0=4000, frames=2, skin=False, skin_args="") + """
+    out = chip.eval_out(frame_setup(chip, cfg, 2, 50, sc.MODE_AKHTAR, 4000) + FRAMES.format(frames=2) + """
 def _fail(rp_ohm):
     raise ValueError("injected")
 s.chans[0].ctl.update = _fail
