@@ -291,20 +291,22 @@ class Stimulator:
         """Channel k's pulse for this frame, after the last check right before the
         gate opens: the hard limits, independent of the controller."""
         c.n_samples = 0
-        c.di = 0
-        c.dt = 0
         c.cal_pulse = c.calibrating
         i = c.i
+        t = c.t
+        ad = c.ad  # the delivered current is the truth: Rp, mQ and telemetry use it
+        c.di = 0
+        c.dt = 0
         if not c.armed or i <= 0:
             return
-        t = c.t
-        if i > self.hard_i or t > self.hard_t or t < _T_FLOOR_US or i * t > self.hard_q:
+        hard_i = self.hard_i
+        hard_q = self.hard_q
+        if i > hard_i or t > self.hard_t or t < _T_FLOOR_US or i * t > hard_q:
             self._latch(c, hp.STOP_LIMIT)
             return
-        ad = c.ad  # the delivered current is the truth: Rp, mQ and telemetry use it
         if c.ai != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
             return
-        if ad > self.hard_i or ad * t > self.hard_q:  # a board that would deliver beyond the hard limits
+        if ad > hard_i or ad * t > hard_q:  # a board that would deliver beyond the hard limits
             self._latch(c, hp.STOP_LIMIT)
             return
         c.di = ad
