@@ -173,8 +173,6 @@ class Stimulator:
         self.overruns = 0
         self.loop_us = 0
         self.frame_t = 0
-        self.sat_overruns = 0
-        self.sat_loop_us = 0
         if keepalive_ms is None:
             keepalive_ms = hp.KEEPALIVE_DEFAULT_MS
         if keepalive_ms and not hp.KEEPALIVE_MIN_MS <= keepalive_ms <= hp.KEEPALIVE_MAX_MS:
@@ -252,12 +250,12 @@ class Stimulator:
         k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
-        v = self.overruns  # the same in every report of this frame (>= 0: hp.sat16 without its call)
-        self.sat_overruns = v if v < 0xFFFF else 0xFFFF
-        v = self.loop_us
-        self.sat_loop_us = v if v < 0xFFFF else 0xFFFF
         board.feed_watchdog()
-        self._enter()  # one heap-locked section for the pulses and their control
+        irq_off = self._irq_off  # one heap-locked section for the pulses and their control (_enter, inlined)
+        if irq_off is not None:
+            self._irq = irq_off()
+        _lock()
+        self.locked = 1
         ka = self.keepalive_ms
         if ka and self._ticks_diff(now, self.last_host) > ka * 1000:  # before any pulse: none fires
             self._check_keepalive()  # once the host is overdue
@@ -276,7 +274,11 @@ class Stimulator:
             prev = c
             k += 1
         self._channel(prev)
-        self._leave()
+        self.locked = 0  # _leave, inlined
+        _unlock()
+        irq_on = self._irq_on
+        if irq_on is not None:
+            irq_on(self._irq)
         tel = self.tel
         k = 0
         while k < n:
@@ -530,8 +532,10 @@ class Stimulator:
         p16[18] = int(ctl.status)  # O_STATUS 36
         p16[19] = int(ctl.i_ua)  # O_NEXT_I 38
         p16[20] = int(ctl.t_us)  # O_NEXT_T 40
-        p16[21] = int(self.sat_overruns)  # O_OVERRUNS 42
-        p16[22] = int(self.sat_loop_us)  # O_LOOP 44
+        v = int(self.overruns)  # hp.sat16 (run() changes both between frames: the same in every
+        p16[21] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame); O_OVERRUNS 42
+        v = int(self.loop_us)  # the previous frame's; O_LOOP 44
+        p16[22] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
         p8[46] = f  # O_FLAGS
         p8[47] = int(self.rate_hz)  # O_RATE
         self.seq = (seq + 1) & 0x3FFFFFFF

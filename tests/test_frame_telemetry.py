@@ -9,11 +9,12 @@ import random
 
 from fw_harness import run_fw
 
-RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they go beyond 0xFFFF
+RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they go beyond 0xFFFF;
+    # the counters (overruns, loop us) saturate (hid_protocol.sat16)
     "ch": (0, 1), "mode": (0, 5), "stop": (0, 7), "seq": (0, 2**30 - 1), "frame_t": (0, 2**30 - 1),
     "di": (0, 2**20), "dt": (0, 2**20), "vp": (-(2**30) + 1, 2**30 - 1), "rp": (-(2**30) + 1, 2**30 - 1),
     "me": (-(2**30) + 1, 2**30 - 1), "mqt": (-(2**30) + 1, 2**30 - 1), "mql": (-(2**30) + 1, 2**30 - 1),
-    "status": (0, 2**20), "ni": (0, 2**20), "nt": (0, 2**20), "over": (0, 0xFFFF), "loop": (0, 0xFFFF),
+    "status": (0, 2**20), "ni": (0, 2**20), "nt": (0, 2**20), "over": (-3, 2**20), "loop": (-3, 2**20),
     "armed": (0, 1), "held": (0, 1), "keepalive_ms": (0, 5000), "cal": (0, 1), "rate": (10, 100),
 }
 
@@ -46,7 +47,7 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
             ctl.mode = v["mode"]; c.stop = v["stop"]; s.seq = v["seq"]; s.frame_t = v["frame_t"]
             c.di = v["di"]; c.dt = v["dt"]; c.vp = v["vp"]; c.rp = v["rp"]; ctl.me_ua2ms = v["me"]
             ctl.mq_target_fc_per_ohm = v["mqt"]; ctl.mq_last_fc_per_ohm = v["mql"]; ctl.status = v["status"]
-            ctl.i_ua = v["ni"]; ctl.t_us = v["nt"]; s.sat_overruns = v["over"]; s.sat_loop_us = v["loop"]
+            ctl.i_ua = v["ni"]; ctl.t_us = v["nt"]; s.overruns = v["over"]; s.loop_us = v["loop"]
             c.armed = bool(v["armed"]); c.held = bool(v["held"]); s.keepalive_ms = v["keepalive_ms"]
             c.cal_pulse = bool(v["cal"])
             s.rate_hz = v["rate"]
@@ -62,7 +63,8 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
             struct.pack_into(stim._TEL_FMT, ref, 0, hp.REP_TELEMETRY, c.ch, ctl.mode, c.stop, v["seq"],
                              s.frame_t, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
                              ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
-                             ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, s.sat_overruns, s.sat_loop_us, f, s.rate_hz)
+                             ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, hp.sat16(s.overruns), hp.sat16(s.loop_us), f,
+                             s.rate_hz)
             want.append(bytes(ref).hex())
             assert s.seq == (v["seq"] + 1) & 0x3FFFFFFF
         result(got=got, want=want)
