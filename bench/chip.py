@@ -5,7 +5,7 @@ pulse width. Three figures a frame, from ticks_us on the emulated clock:
   is the period (overruns counted by the firmware);
 - CPU work: the frame minus the time the CPU idled in Board.wait() for a pulse's
   capture to end, i.e. all firmware work, whether or not it ran while a pulse was
-  delivered (a second pass with wait() timed; the timing wrapper's own cost
+  delivered (a pass with wait() timed, tests/chip/harness.py CPU_WORK; the timing wrapper's own cost
   counts as work, so this is an upper bound);
 - exposed: the frame minus the gate-high time of its pulses: the work that did
   not fit under a pulse (the earlier bench's "frame compute").
@@ -41,17 +41,23 @@ sys.path.insert(0, str(ROOT / "shared"))
 
 import sensation_core as sc  # noqa: E402
 
-from chip.harness import ChipUnavailable, load_cfg, make_board, put_loads, setup_script, start_host  # noqa: E402
+from chip.harness import (  # noqa: E402
+    CPU_WORK,
+    ChipUnavailable,
+    load_cfg,
+    make_board,
+    put_loads,
+    setup_script,
+    start_host,
+)
 
 MODES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
          "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR, "akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST,
          "fast+skin": sc.MODE_FAST}
 # the frame's set-up (Stimulator, calibration, arming) is tests/chip/harness.py's FRAME_SETUP;
-# then warm-up + frames back to back (the overruns) and the two measuring passes
-MEASURE = """
-s.run({warm} + {frames})  # back to back from the first frame (calibration included): the overruns
-over = s.overruns
-from array import array
+# then the harness's CPU_WORK (warm-up + frames back to back: the overruns; a pass with wait()
+# timed: the CPU's work) and a pass for the frame and the pulses
+MEASURE = CPU_WORK + """
 loop = array('i', [0] * {frames})
 pulse = array('i', [0] * {frames})
 for f in range({frames}):
@@ -61,21 +67,6 @@ for f in range({frames}):
         p += c.dt
     loop[f] = s.loop_us
     pulse[f] = p
-idle = array('i', [0])
-_w = s._wait
-_t = time.ticks_us
-_d = time.ticks_diff
-def _timed():
-    t0 = _t()
-    _w()
-    idle[0] += _d(_t(), t0)
-s._wait = _timed
-work = array('i', [0] * {frames})
-for f in range({frames}):
-    idle[0] = 0
-    s.run(1)
-    work[f] = s.loop_us - idle[0]
-s._wait = _w
 print((list(loop), list(pulse), list(work), over, s.errors, [c.stop for c in s.chans], [c.dt for c in s.chans]))
 b.stop_all()
 """

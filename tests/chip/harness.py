@@ -73,3 +73,29 @@ def frame_setup(chip, cfg, n: int, rate: int, mode: int, t0: int, skin: bool = F
     make_board(chip, cfg, n_channels=n)
     put_loads(chip, n, skin)
     return setup_script(n, rate, mode, t0, skin)
+
+# After FRAME_SETUP: the CPU's work in each of {frames} frames (after {warm} warm-up frames),
+# i.e. the frame (Stimulator.loop_us) minus the time the CPU idled in Board.wait() for a
+# capture to end (the timing wrapper's own cost counts as work: an upper bound). Leaves
+# `work` (array of emulated us) and `over` (the overruns, counted over the warm-up frames
+# and one more pass of {frames} run back to back from the arming, calibration included).
+CPU_WORK = """
+s.run({warm} + {frames})
+over = s.overruns
+from array import array
+idle = array('i', [0])
+_w = s._wait
+_t = time.ticks_us
+_d = time.ticks_diff
+def _timed():
+    t0 = _t()
+    _w()
+    idle[0] += _d(_t(), t0)
+s._wait = _timed
+work = array('i', [0] * {frames})
+for f in range({frames}):
+    idle[0] = 0
+    s.run(1)
+    work[f] = s.loop_us - idle[0]
+s._wait = _w
+"""
