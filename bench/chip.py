@@ -5,7 +5,7 @@ pulse width. Three figures a frame, from ticks_us on the emulated clock:
   is the period (overruns counted by the firmware);
 - CPU work: the frame minus the time the CPU idled in Board.wait() for a pulse's
   capture to end, i.e. all firmware work, whether or not it ran while a pulse was
-  delivered (a second pass with wait() timed; the timing wrapper's own cost
+  delivered (a pass with wait() timed, tests/chip/harness.py CPU_WORK; the timing wrapper's own cost
   counts as work, so this is an upper bound);
 - exposed: the frame minus the gate-high time of its pulses: the work that did
   not fit under a pulse (the earlier bench's "frame compute").
@@ -41,30 +41,23 @@ sys.path.insert(0, str(ROOT / "shared"))
 
 import sensation_core as sc  # noqa: E402
 
-from chip.harness import ChipUnavailable, load_cfg, make_board, start_host  # noqa: E402
+from chip.harness import (  # noqa: E402
+    CPU_WORK,
+    ChipUnavailable,
+    load_cfg,
+    make_board,
+    put_loads,
+    setup_script,
+    start_host,
+)
 
 MODES = {"open": sc.MODE_OPEN_LOOP, "charge": sc.MODE_CONSTANT_CHARGE, "energy": sc.MODE_CONSTANT_ENERGY,
          "pwlinear": sc.MODE_PULSE_WIDTH_LINEAR, "akhtar": sc.MODE_AKHTAR, "fast": sc.MODE_FAST,
          "fast+skin": sc.MODE_FAST}
-LOAD = {"rs_ohm": 500, "rp_ohm": 20000, "tau_us": 450, "open": False}
-JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)]}
-SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/core_step.py)
-
-RUN = """
-s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, {rate})
-reps = []
-if {t0} > s.lim[3]:  # the boot default keeps room for a skin model; without one t_max may go higher
-    reps.append(hp.cmd_set_limits(bytearray(64), s.lim[0], s.lim[1], s.lim[2], {t0}, s.lim[4]))
-reps += [hp.cmd_set_mode(bytearray(64), {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, 1000, {t0}, -1670, 186000)]
-if {skin}:
-    reps.append(hp.cmd_set_skin(bytearray(64), hp.CH_ALL, {skin_args}))
-reps.append(hp.cmd_arm(bytearray(64), hp.CH_ALL))
-for rep in reps:
-    assert s.handle(rep, time.ticks_us()) == hp.RES_OK, rep[0]
-s.sync_outputs()
-s.run({warm} + {frames})  # back to back from the first frame (calibration included): the overruns
-over = s.overruns
-from array import array
+# the frame's set-up (Stimulator, calibration, arming) is tests/chip/harness.py's FRAME_SETUP;
+# then the harness's CPU_WORK (warm-up + frames back to back: the overruns; a pass with wait()
+# timed: the CPU's work) and a pass for the frame and the pulses
+MEASURE = CPU_WORK + """
 loop = array('i', [0] * {frames})
 pulse = array('i', [0] * {frames})
 for f in range({frames}):
@@ -74,21 +67,6 @@ for f in range({frames}):
         p += c.dt
     loop[f] = s.loop_us
     pulse[f] = p
-idle = array('i', [0])
-_w = s._wait
-_t = time.ticks_us
-_d = time.ticks_diff
-def _timed():
-    t0 = _t()
-    _w()
-    idle[0] += _d(_t(), t0)
-s._wait = _timed
-work = array('i', [0] * {frames})
-for f in range({frames}):
-    idle[0] = 0
-    s.run(1)
-    work[f] = s.loop_us - idle[0]
-s._wait = _w
 print((list(loop), list(pulse), list(work), over, s.errors, [c.stop for c in s.chans], [c.dt for c in s.chans]))
 b.stop_all()
 """
@@ -114,11 +92,9 @@ def bench(host, cfg, configs, modes, widths, frames, warm=3):
                         print(f"  {n} ch @ {rate} Hz {name:9} T0 {w} us: refused by the device (hid_protocol."
                               f"frame_fits{' with a skin model' if m else ''}), not run")
                     continue  # the device refuses it, or measured already
-                for k in range(n):
-                    chip.host.call("load", ch=k, load=JUMP if name == "fast+skin" else LOAD)
+                put_loads(chip, n, skin=m)
                 w0 = time.time()
-                out = chip.exec(RUN.format(n=n, rate=rate, mode=MODES[name], t0=t0, skin=name == "fast+skin",
-                                           skin_args=", ".join(map(str, SKIN)), warm=warm, frames=frames),
+                out = chip.exec(setup_script(n, rate, MODES[name], t0, skin=m) + MEASURE.format(warm=warm, frames=frames),
                                 timeout_ms=120000)
                 loop, pulse, work, overruns, errors, stops, dts = ast.literal_eval(out.strip().splitlines()[-1])
                 chip.take()

@@ -9,6 +9,7 @@ import time
 from array import array
 
 import machine
+import micropython
 import rp2
 import uctypes
 from micropython import const
@@ -37,6 +38,7 @@ _PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
 _SET_PINS_0 = rp2.asm_pio_encode("set(pins, 0)", 0)
 _WDT_CTRL = const(0x40058000)  # RP2040 datasheet 4.7.7: CTRL.ENABLE (bit 30) pauses the count when clear
 _WDT_ENABLE = const(0x40000000)
+_disable_irq = machine.disable_irq  # one global load in irq_off()
 
 
 VMON_PATH = "/" + vmon_cal.CAL_FILE  # the monitor correction in the board's flash (steadytouch selftest)
@@ -93,6 +95,19 @@ def outputs_off(cfg):
         machine.Pin(pin, machine.Pin.OUT, value=1)
 
 
+@micropython.viper
+def _adc_arm(sel: int):
+    """The ADC on for input sel (RP2040 datasheet 4.9.6: CS.AINSEL << 12 in sel), no
+    conversion yet; its FIFO on, a DMA request per sample, the error flags cleared,
+    then emptied. Viper, because speed forces it: the register stores and the FIFO
+    reads are machine code, ~30 us less a pulse on the chip than mem32 from Python."""
+    adc = ptr32(_ADC_CS)  # CS, RESULT, FCS, FIFO at words 0..3
+    adc[0] = _CS_EN | sel
+    adc[2] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
+    while adc[2] & 0xF0000:  # FCS.LEVEL: drain the FIFO
+        x = adc[3]
+
+
 class Clock:
     ticks_us = staticmethod(time.ticks_us)
     ticks_add = staticmethod(time.ticks_add)
@@ -122,6 +137,7 @@ class Board:
         # the frame's set_amplitude is the driver's set_ua itself (bound once here: one Python call
         # a write instead of two, ~16 us less on the chip); the method below documents the contract
         self.set_amplitude = self.dac.set_ua
+        self.irq_on = machine.enable_irq  # the same: one Python call a frame's section less (method below)
         self.ainsel = [cfg.ADC_INPUTS[k] << 12 for k in range(n)]
         for k in range(n):
             machine.ADC(26 + cfg.ADC_INPUTS[k])  # configures the pad as an analog input
@@ -144,6 +160,12 @@ class Board:
         self.usb = self._usb()
         # last, once everything above worked: a failed set-up must not turn into a reset loop
         self.wdt = machine.WDT(timeout=cfg.WATCHDOG_MS)
+        # the frame's calls go to the parts' own methods (one Python call less each, as
+        # set_amplitude above); the methods below document the contract
+        self.feed_watchdog = self.wdt.feed
+        if self.usb is not None:
+            self.send = self.usb.send
+            self.recv = self.usb.recv
 
     def _usb(self):
         try:
@@ -166,7 +188,7 @@ class Board:
         MemoryError and the HID interface never opened (seen on the emulated
         chip). With interrupts off nothing new is scheduled, and the loop below
         is a jump: the VM runs what was already pending there, before the lock."""
-        state = machine.disable_irq()
+        state = _disable_irq()
         k = 0
         while k < 1:
             k += 1
@@ -225,10 +247,7 @@ class Board:
             n = self.n_max
         mem = machine.mem32
         sel = self.ainsel[ch]
-        mem[_ADC_CS] = _CS_EN | sel
-        mem[_ADC_FCS] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
-        while mem[_ADC_FCS] & 0xF0000:  # drain the FIFO
-            mem[_ADC_FIFO]
+        _adc_arm(sel)
         regs = self.dma_regs
         regs[1] = self.adc_addr[ch]
         regs[2] = n
