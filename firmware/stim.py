@@ -830,7 +830,7 @@ class Stimulator:
         c.vmon_dac = dac_ppm
         if self._dac_gain:
             self.board.set_dac_gain(c.ch, dac_ppm)
-        c.ai = 0  # _pre_pulse: no pulse until _output has set the amplitude with the new scale
+        c.ai = 0  # _pulse: no pulse until _output has set the amplitude with the new scale
         c.vmon_g = gain_ppm
         c.vmon_off = offset_mv
         if gain_ppm:
