@@ -184,33 +184,27 @@ class _Hold:
         return self.e.contact, self.e.h, 0.0
 
 
-PEAK = "median3"  # the firmware's estimator; "end": the last sample, from an end-aligned capture (--peak end)
+PEAK = "pairmin"  # the firmware's estimator; "end": the last sample before the fall, no spike guard (--peak end)
 
 
-def _peak3(buf, n):
-    """stim._peak_mv's peak (ADC counts): the largest median of 3 neighbours; < 3 samples: the smallest."""
+def peak_counts(buf, n, edge=None):
+    """stim._peak_counts over the last n samples of the window buf: the largest min of two
+    neighbouring samples (1 sample: that one). PEAK == "end": the sample just before the
+    fall (`edge`: the window index of the first sample after it), a bound without a guard."""
+    w = len(buf)
     if n <= 0:
         return 0
-    if n < 3:
-        return min(buf[0], buf[1]) if n == 2 else buf[0]
-    if PEAK == "end":  # what an estimator that keeps the end of the pulse would read (no spike guard: a bound)
-        return max(buf[n - 1], _peak3_median(buf, n))
-    return _peak3_median(buf, n)
-
-
-def _peak3_median(buf, n):
-    best = 0
-    for k in range(2, n):
-        a, b, x = buf[k - 2], buf[k - 1], buf[k]
-        m = max(min(a, b), min(max(a, b), x))
-        best = max(best, m)
-    return best
+    if PEAK == "end" and edge is not None and edge - 1 >= w - n:
+        return buf[edge - 1]
+    if n == 1:
+        return buf[w - 1]
+    return max(min(buf[k - 1], buf[k]) for k in range(w - n + 1, w))
 
 
 class Meter:
     """Rp as the firmware reads it, through the simulated board (board_sim.SimBoard,
     `real` = the realistic analog path, `ideal` = the ideal one): the DAC's code,
-    the ADC samples, the median-of-3 peak in mV, Rp = Vp / I_delivered. A frame
+    the ADC's window of samples around the fall, the firmware's peak in mV, Rp = Vp / I_delivered. A frame
     (20 ms at 50 Hz) passes between pulses, so the DAC settles as on the board."""
 
     def __init__(self, e, board, seed=1, correction=None, adc_us=None):
@@ -221,7 +215,6 @@ class Meter:
         self.b = board_sim.SimBoard(c, board_sim.VirtualClock(), _Hold(e), 1, seed, electrodes=[e],
                                     ideal=(board == "ideal"), correction=correction)
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
-        self.b.align_end = PEAK == "end"
 
     def pulse(self, i_ua, t_us):
         """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse."""
@@ -229,7 +222,7 @@ class Meter:
         di = b.set_amplitude(0, i_ua)
         b.clock.advance(20000 - t_us)
         n = b.fire(0, t_us)
-        vp = _peak3(b.adc[0], n) * cfg.VMON_UV_PER_COUNT // 1000
+        vp = peak_counts(b.adc[0], n, b.last_edge[0]) * cfg.VMON_UV_PER_COUNT // 1000
         rp = sc.RP_OVER if vp >= self.vp_off else sc.rp_from_vp(vp, di)
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 
@@ -436,9 +429,9 @@ def main():
                          "(ideal, or real: the parts' errors, docs/simulation.md)")
     ap.add_argument("--correct", action="store_true", help="with --board real: the self-test's monitor correction")
     ap.add_argument("--sweeps", type=int, default=10, help="repeated calibration sweeps for the averaged fit (study)")
-    ap.add_argument("--peak", choices=["median3", "end"], default="median3",
-                    help="the peak estimator: the firmware's (default) or the end-of-pulse sample of an "
-                         "end-aligned capture (what fixing the early read would give)")
+    ap.add_argument("--peak", choices=["pairmin", "end"], default="pairmin",
+                    help="the peak estimator: the firmware's (default: the largest min of two neighbouring "
+                         "samples, the spike guard) or the last sample before the fall (no guard: a bound)")
     ap.add_argument("--skip", default="", help="comma-separated scenarios to leave out, e.g. exercise")
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
@@ -585,7 +578,7 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
     total = len(next(iter(res.values()))["settle"])
     print(f"\n{n} unseen electrodes x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
-          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{', end-of-pulse peak' if PEAK == 'end' else ''}"
+          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{', last sample before the fall (no guard)' if PEAK == 'end' else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
           f"({skipped} left out); averaged fit trusted on {sum(trust)} of {len(trust)} electrodes "
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")

@@ -57,32 +57,31 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
 
 
 @micropython.viper
-def _peak3(buf, n: int) -> int:
-    """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
-    12-bit ADC counts, n >= 3). The median of (a, b, c) is the largest of
-    min(a, b), min(a, c), min(b, c), so the largest median is the largest min
-    over every pair of samples at most 2 apart. Scanned from the end: the peak
-    is near the falling edge, and a sample no larger than the best so far cannot
-    improve it (one comparison). Viper: machine code on the rp2 (mpy-cross
-    -march=armv6m) and in the unix VM; nothing allocated. Every value is < 4096,
-    so 32-bit (ARM) and 64-bit (x64) words agree."""
+def _peak_counts(buf, lo: int, hi: int) -> int:
+    """The end-of-pulse voltage (12-bit ADC counts) in buf[lo:hi], an array('H')
+    window of consecutive samples 2 us apart that holds the gate's falling edge:
+    the largest min of two neighbouring samples. On a pulse (rising, then lower
+    after the edge) that is the sample 2-4 us before the edge. Spike guard: the
+    min of every pair holding a wild sample is its genuine neighbour, so one
+    wild sample, whatever its value, can never make the result exceed the
+    largest genuine sample (the electrode's real end-of-pulse voltage): it
+    cannot read Rp high, and a high Rp is what raises the charge (mQ ~ Q / Rp).
+    A low sample (dropout) can only lower it. hi - lo == 1: that sample.
+    Scanned from the edge backwards, a sample no larger than the best so far is
+    skipped (one comparison). Viper: machine code on the rp2, nothing allocated;
+    every value is < 4096, so 32-bit (ARM) and 64-bit (x64) words agree."""
     p = ptr16(buf)
+    if hi - lo < 2:
+        return int(p[lo]) if hi > lo else 0
     best = 0
-    k = n - 1
-    while k >= 2:
+    k = hi - 1
+    while k > lo:
         x = int(p[k])
         if x > best:
             y = int(p[k - 1])
             if y > best:
                 best = y if y < x else x
-            y = int(p[k - 2])
-            if y > best:
-                best = y if y < x else x
         k -= 1
-    x = int(p[1])
-    y = int(p[0])
-    if x > best and y > best:
-        best = y if y < x else x
     return best
 
 
@@ -355,20 +354,15 @@ class Stimulator:
         return True
 
     def _measure(self, c):
-        """Vp: the peak of the captured pulse in mV, the largest median of 3
-        neighbouring samples, so a single-sample spike cannot set it (fewer than 3
-        samples: the smallest; a low reading can only lower the charge). Rp from
-        Vp and the delivered current (0: no pulse)."""
+        """Vp: the end-of-pulse voltage in mV (_peak_counts over the board's window
+        of the last n samples, with its spike guard). Rp from Vp and the delivered
+        current (0: no pulse)."""
         n = c.n_samples
         buf = c.adc
-        if n <= 0:
-            v = 0
-        elif n < 3:
-            v = buf[0]
-            if n == 2 and buf[1] < v:
-                v = buf[1]
-        else:
-            v = _peak3(buf, n)
+        v = 0
+        if n > 0:
+            w = len(buf)
+            v = _peak_counts(buf, w - n, w)
         vp = v * self.uv_per_count // 1000
         c.vp = vp
         c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0

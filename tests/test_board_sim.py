@@ -53,10 +53,11 @@ def test_the_dac_settles_first_order_in_its_datasheet_time():
 
 
 def _pulse_counts(b, ch, i_ua, t_us):
+    """The samples of the window taken while the gate was high."""
     b.set_amplitude(ch, i_ua)
     b.clock.advance(20000)
-    n = b.fire(ch, t_us)
-    return list(b.adc[ch][:n])
+    b.fire(ch, t_us)
+    return list(b.adc[ch][b.last_rise[ch]:b.last_edge[ch]])
 
 
 def test_adc_noise_is_the_datasheet_enob_and_the_ideal_board_keeps_1_5_counts():
