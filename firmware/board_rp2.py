@@ -37,8 +37,8 @@ _ADC_CLK_HZ = const(48000000)
 # keeps only the capture's last 64 us, in time order, ending _CAPTURE_POST_US after
 # the falling edge: the edge and the end of the pulse are always in it.
 # _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (the
-# Python between the two stores in start() plus the gate program's set-up: 12.0-14.2 us,
-# tests/chip/test_chip_adc.py asserts it). The capture runs to _CAPTURE_POST_US past the
+# Python between the two stores in start() plus the gate program's set-up: 12.0 us from
+# a bare loop, 13.1-14.4 us in the frame; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
 # edge there (~10 samples after it, ~22 before it in the window); a real chip's flash
 # cache misses only lengthen the lead, which moves the edge later in the window: up to
 # ~20 us more still leaves it inside (and a capture that ended early reads Vp low: a

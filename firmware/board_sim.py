@@ -32,11 +32,13 @@ MON_GAIN = (1.0150, 0.9880, 1.0070, 0.9930)  # per channel: divider tolerance x 
 MON_OFFSET_MV = (160, -110, 80, 220)  # per channel, electrode-referred: amplifier + ADC offset
 IDEAL_NOISE_COUNTS = 1.5  # the ideal board's ADC noise (as before the realistic model)
 # ---- the capture, as board_rp2 makes it on the chip (docs/simulation.md, "Voltage monitor and ADC") ----
-# The ADC converts every cfg.ADC_SAMPLE_US from its start, CAPTURE_LEAD_US before the gate
-# rises (the chip's lead, measured on the emulated chip: 12.0-14.2 us, typically 12.2),
-# for (T + 12 + 20) // dt conversions (board_rp2._CAPTURE_LEAD_US, _CAPTURE_POST_US); the
-# board keeps the last cfg.ADC_WINDOW of them, in time order, at the end of adc[ch].
-CAPTURE_LEAD_US = 12.25
+# The ADC converts every cfg.ADC_SAMPLE_US from its start, a lead before the gate rises
+# (on the emulated chip 13.1-14.4 us in the frame, varying with the code path; a real
+# chip adds flash-cache misses), for (T + 12 + 20) // dt conversions (board_rp2.
+# _CAPTURE_LEAD_US, _CAPTURE_POST_US); the board keeps the last cfg.ADC_WINDOW of them, in
+# time order, at the end of adc[ch]. The simulated lead is drawn per pulse from
+# CAPTURE_LEAD_US (a 2 us span: every phase of the conversions against the edge).
+CAPTURE_LEAD_US = (13.0, 15.0)
 CAPTURE_COUNT_US = 12 + 20
 
 
@@ -240,7 +242,7 @@ class SimBoard:
         self.dt_us = cfg.ADC_SAMPLE_US
         self.n_max = cfg.ADC_WINDOW
         self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n_channels)]
-        self.lead_us = CAPTURE_LEAD_US  # the ADC's start before the gate's rise
+        self.lead_us = None  # the ADC's start before the gate's rise (us); None: drawn per pulse (CAPTURE_LEAD_US)
         self.last_rise = [0] * n_channels  # window index of the last pulse's first sample in the pulse (tests)
         self.last_edge = [0] * n_channels  # ... and of its first sample after the fall
         self.amp = [0] * n_channels  # the delivered current the firmware was told (uA)
@@ -351,7 +353,10 @@ class SimBoard:
         since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
         i_end = i_set if self.ideal else self._level_ua(ch, since + t_us)
         v_cap_mv = i_end / 1000.0 * rp * (1.0 - exp ** (-t_us / tau)) * 1000.0 if on else 0.0  # Rp || C at the fall
-        t0 = (total - n) * dt - self.lead_us  # the first kept conversion, from the rise (us)
+        lead = self.lead_us
+        if lead is None:
+            lead = CAPTURE_LEAD_US[0] + (CAPTURE_LEAD_US[1] - CAPTURE_LEAD_US[0]) * rnd()
+        t0 = (total - n) * dt - lead  # the first kept conversion, from the rise (us)
         edge = w
         rise = w
         for j in range(n):
