@@ -184,6 +184,7 @@ class _Hold:
         return self.e.contact, self.e.h, 0.0
 
 
+SURGES = False  # --surges: one line per surging step (study)
 PEAK = "pairmin"  # the firmware's estimator; "end": the last sample before the fall, no spike guard (--peak end)
 
 
@@ -296,6 +297,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
     h_target, tau = e.h, 0.0
     rows = []
     measured = []  # with a board: the rows as the controller sees them (delivered I, measured Rp and mQ)
+    true_rp = []  # ... and the electrode's true end-of-pulse Rp of each pulse (ohm; --surges)
     ev = {x.pulse: x for x in events}
     for k in range(n):
         if k in ev:
@@ -320,6 +322,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             mq = (i_true * t - Y) * 1000 / (rp_true - X) if math.isfinite(rp_true) else float("nan")
             rows.append((k, i, t, rp, mq, c.status))
             measured.append((k, di, t, rp, (di * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan"), c.status))
+            true_rp.append(rp_true)
             c.update(rp)
             if mode == ORACLE and c.i_ua > 0:
                 oracle_pulse(c, e, i * t)
@@ -336,6 +339,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             oracle_pulse(c, e, i * t)
     if target_true is not None:
         FIT_INFO["measured"] = (np.array(measured, dtype=float).reshape(-1, 6), c.mq_target_fc_per_ohm)
+        FIT_INFO["true_rp"] = true_rp
         return np.array(rows, dtype=float), target_true, c.me_ua2ms * 1000
     return np.array(rows, dtype=float), c.mq_target_fc_per_ohm, c.me_ua2ms * 1000
 
@@ -436,9 +440,11 @@ def main():
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
                     help="only the study on N unseen electrodes (steps; 1 %% settling, surges)")
+    ap.add_argument("--surges", action="store_true", help="study: one line per step surging > 5 %% (why)")
     a = ap.parse_args()
-    global PEAK
+    global PEAK, SURGES
     PEAK = a.peak
+    SURGES = a.surges
     if a.study:
         print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise)
         return
@@ -542,12 +548,14 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
     for k in range(n_electrodes):
         mk = random_electrode(rng)
         runs = {}
+        true_rps = {}
         for name, (mode, sw) in STUDY_MODES.items():
             rows, target, me = run(mode, STUDY_EVENTS, STUDY_N, i0=i0, board=board, sweeps=sw or sweeps,
                                    electrode=mk, correction=corr, seed=1000 + k, adc_us=adc_us, noise=noise)
             if mode == sc.MODE_FAST and not sw:
                 trust.append(FIT_INFO.get("trusted", False))
             runs[name] = (rows, target, FIT_INFO.get("measured"))
+            true_rps[name] = FIT_INFO.get("true_rp")
         ref_rows = runs["fast, no model"][0]
         starts = [x.pulse for x in STUDY_EVENTS] + [STUDY_N]
         for j, (a, b) in enumerate(zip(starts, starts[1:])):
@@ -559,11 +567,33 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
                 st, su, ou = within(rows, target, STUDY_EVENTS, STUDY_N, tol)
                 res[name]["settle"].append(st[j] if st[j] is not None else 10**6)
                 res[name]["surge"].append(su[j])
+                if su[j] > 0.05 and true_rps.get(name) is not None:
+                    res[name].setdefault("why", []).append(surge_detail(k, j, a, b, rows, target, meas, true_rps[name]))
                 res[name]["out"].append(ou[j])
                 if meas is not None:  # the controller's own view: measured mQ against its measured target
                     sm, _, _ = within(meas[0], meas[1], STUDY_EVENTS, STUDY_N, tol)
                     res[name]["seen"].append(sm[j] if sm[j] is not None else 10**6)
     return res, trust, skipped
+
+
+STEP_NAMES = ["gel on (h 0.3)", "gel off (h 1)", "half peeled", "pressed back"]
+
+
+def surge_detail(k, j, a, b, rows, target, meas, true_rp):
+    """One surging step (felt mQ > 5 % above target after the first corrected pulse): the
+    worst pulse, the pulse before it (whose measurement set it), the measured vs true Rp
+    there, the charge change and the core's bound flags."""
+    kk, i, t, rp, mq, st = rows.T
+    rel = (mq[a:b] - target) / target
+    w = a + 2 + int(np.nanargmax(rel[2:]))
+    p = w - 1
+    err = (meas[0][p, 3] - true_rp[p]) / true_rp[p] if true_rp[p] else float("nan")
+    flags = "+".join(n for n, f in (("I_MIN", sc.ST_I_MIN), ("I_MAX", sc.ST_I_MAX), ("T_MIN", sc.ST_T_MIN),
+                                      ("T_MAX", sc.ST_T_MAX), ("Q_MAX", sc.ST_Q_MAX)) if int(st[w]) & f) or "-"
+    return (f"electrode {k}, {STEP_NAMES[j]}: pulse {w - a} +{rel[w - a]:.1%} "
+            f"(I {i[p]:.0f} -> {i[w]:.0f} uA, T {t[p]:.0f} -> {t[w]:.0f} us, Q x{i[w] * t[w] / (i[p] * t[p]):.2f}); "
+            f"Rp read before it {meas[0][p, 3]:.0f} ohm vs true {true_rp[p]:.0f} ({err:+.1%}); "
+            f"true Rp then -> at it {true_rp[p]:.0f} -> {true_rp[w]:.0f} ohm; bounds {flags}")
 
 
 def _pct(xs):
@@ -594,6 +624,10 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
         print(f"| {name} | {np.median(fin):g} / {np.percentile(fin, 90, method='higher'):g} / {fin.max():g} | {never} | "
               f"{np.mean(r['out']):.0%} | "
               f"{su.max():+.1%} / {int(np.sum(su > 0.05))} | {_pct(r['seen'])} |")
+    if SURGES:
+        for name, r in res.items():
+            for line in r.get("why", []):
+                print(f"  - surge, {name}: {line}")
     return res
 
 
