@@ -185,21 +185,31 @@ class _Hold:
 
 
 SURGES = False  # --surges: one line per surging step (study)
-PEAK = "pairmin"  # the firmware's estimator; "end": the last sample before the fall, no spike guard (--peak end)
+PEAK = "firmware"  # stim._peak_counts; "end": the last sample before the fall, no guard; "pairmin": its strict half
 
 
 def peak_counts(buf, n, edge=None):
-    """stim._peak_counts over the last n samples of the window buf: the largest min of two
-    neighbouring samples (1 sample: that one). PEAK == "end": the sample just before the
-    fall (`edge`: the window index of the first sample after it), a bound without a guard."""
+    """stim._peak_counts over the last n samples of the window buf (1 sample: that one): the
+    larger of the largest min of two neighbouring samples and the last sample before the
+    largest drop capped at its predecessor + 8 + 1/64. PEAK == "end": the sample just before
+    the fall (`edge`: the window index of the first sample after it), a bound without a guard;
+    "pairmin": the pair-min part alone (the strict guard, 2-4 us early)."""
     w = len(buf)
+    lo = w - n
     if n <= 0:
         return 0
-    if PEAK == "end" and edge is not None and edge - 1 >= w - n:
+    if PEAK == "end" and edge is not None and edge - 1 >= lo:
         return buf[edge - 1]
     if n == 1:
         return buf[w - 1]
-    return max(min(buf[k - 1], buf[k]) for k in range(w - n + 1, w))
+    best = max(min(buf[k - 1], buf[k]) for k in range(lo + 1, w))
+    if PEAK == "pairmin":
+        return best
+    e = max(range(lo + 1, w), key=lambda k: (buf[k - 1] - buf[k], k))
+    if e - 1 > lo:
+        y = buf[e - 2]
+        best = max(best, min(buf[e - 1], y + 8 + (y >> 6)))
+    return best
 
 
 class Meter:
@@ -433,9 +443,9 @@ def main():
                          "(ideal, or real: the parts' errors, docs/simulation.md)")
     ap.add_argument("--correct", action="store_true", help="with --board real: the self-test's monitor correction")
     ap.add_argument("--sweeps", type=int, default=10, help="repeated calibration sweeps for the averaged fit (study)")
-    ap.add_argument("--peak", choices=["pairmin", "end"], default="pairmin",
-                    help="the peak estimator: the firmware's (default: the largest min of two neighbouring "
-                         "samples, the spike guard) or the last sample before the fall (no guard: a bound)")
+    ap.add_argument("--peak", choices=["firmware", "end", "pairmin"], default="firmware",
+                    help="the peak estimator: the firmware's (default), the last sample before the fall (no "
+                         "guard: a bound) or the firmware's strict half (the largest min of two neighbours)")
     ap.add_argument("--skip", default="", help="comma-separated scenarios to leave out, e.g. exercise")
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
@@ -608,7 +618,7 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
     total = len(next(iter(res.values()))["settle"])
     print(f"\n{n} unseen electrodes x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
-          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{', last sample before the fall (no guard)' if PEAK == 'end' else ''}"
+          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{f', peak: {PEAK}' if PEAK != 'firmware' else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
           f"({skipped} left out); averaged fit trusted on {sum(trust)} of {len(trust)} electrodes "
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")

@@ -8,8 +8,8 @@ The capture (board_rp2, issue 13): conversions every ADC_SAMPLE_US = 2 us from
 the ADC's start, _CAPTURE_LEAD_US before the gate rises, DMA'd into a ring that
 keeps the last ADC_WINDOW; the falling edge lies in that window and the last
 conversion before it started within the last 2 us of the pulse, for every T.
-The firmware's Vp (stim._peak_counts) is the largest min of two neighbouring
-samples of the window: on a pulse, the sample 2-4 us before the edge."""
+The firmware's Vp (stim._peak_counts) reads the window: on a pulse the last sample
+before the edge (0-2 us early), or where the guard caps it the one before (2-4 us)."""
 
 import math
 
@@ -17,6 +17,7 @@ import pytest
 
 import hid_protocol as hp
 import sensation_core as sc
+from test_frame_peak import reference
 
 US = 1000  # ns
 RUN = """
@@ -61,9 +62,9 @@ def dac_ua(cfg, i_ua):
     return (i_ua * 4096 // cfg.AMP_UA_AT_FULL) * cfg.AMP_UA_AT_FULL / 4096
 
 
-def pair_min(v):
-    """stim._peak_counts' rule (tests/test_frame_peak.py checks the viper code against it)."""
-    return v[0] if len(v) == 1 else max(min(a, b) for a, b in zip(v, v[1:]))
+def peak_counts(v):
+    """stim._peak_counts on a whole window (its reference, checked against the viper code there)."""
+    return reference(v, 0, len(v))
 
 
 def capture(cfg, samples, p, adc_input):
@@ -81,7 +82,7 @@ def test_the_capture_window_holds_the_falling_edge_and_a_sample_from_the_last_2_
     """Emulated-us facts of the capture, on both channels: the window is the capture's
     last n conversions in order, 2 us apart, starting 12.0-14.2 us before the rise;
     the falling edge is in it with samples on both sides, and the last conversion before
-    the edge started within its last 2 us; the firmware's Vp is the window's pair-min."""
+    the edge started within its last 2 us; the firmware's Vp is _peak_counts of the window."""
     rows, pulses, samples = run(on_board, [(0, 10000, 0), (470, 4700, 0)], 1000, t0)
     assert len(rows) == len(pulses) == 4
     leads = []
@@ -98,7 +99,7 @@ def test_the_capture_window_holds_the_falling_edge_and_a_sample_from_the_last_2_
         after = [t for t, _v in got if t >= p["fall_ns"]]
         assert len(after) >= 5 and len(before) >= 2, (len(before), len(after))
         assert p["fall_ns"] - before[-1] <= cfg.ADC_SAMPLE_US * US  # the pulse's last 2 us
-        assert vp == pair_min(buf[cfg.ADC_WINDOW - n:]) * cfg.VMON_UV_PER_COUNT // 1000
+        assert vp == peak_counts(buf[cfg.ADC_WINDOW - n:]) * cfg.VMON_UV_PER_COUNT // 1000
     print(f"T={t0} us: lead {min(leads):.3f}-{max(leads):.3f} us")
     assert all(12.0 <= x <= 16.0 for x in leads), leads  # board_rp2._CAPTURE_LEAD_US = 12
 
@@ -143,11 +144,11 @@ def test_rp_is_the_model_at_the_end_of_the_pulse_within_the_adc_resolution(on_bo
             assert end - rise4 - res - 1 <= rp <= end + res + 1, (load, t0, rp, end, rise4)
             if rise4 < res:
                 assert abs(rp - end) <= 2 * res + 1
-            # the sample read: the latest one inside the pulse holding the value the pair-min took
+            # the sample read: the latest one inside the pulse holding the value read
             conv = capture(cfg, samples, p, cfg.ADC_INPUTS[ch])
             total = (t0 + 12 + 20) // cfg.ADC_SAMPLE_US
             got = conv[total - n:total]
-            v = pair_min(buf[cfg.ADC_WINDOW - n:])
+            v = peak_counts(buf[cfg.ADC_WINDOW - n:])
             t_read = max((t - p["rise_ns"]) / US for t, x in got if x == v and t < p["fall_ns"])
             assert 0 <= t_read < t0 and t0 - t_read <= 2 * cfg.ADC_SAMPLE_US
             assert abs(rp - model_ohm(load, t_read)) <= res + 1 + rp / 1000  # (+ di rounded to 1 uA)
