@@ -184,33 +184,38 @@ class _Hold:
         return self.e.contact, self.e.h, 0.0
 
 
-PEAK = "median3"  # the firmware's estimator; "end": the last sample, from an end-aligned capture (--peak end)
+SURGES = False  # --surges: one line per surging step (study)
+PEAK = "firmware"  # stim._peak_counts; "end": the last sample before the fall, no guard; "pairmin": its strict half
 
 
-def _peak3(buf, n):
-    """stim._peak_mv's peak (ADC counts): the largest median of 3 neighbours; < 3 samples: the smallest."""
+def peak_counts(buf, n, edge=None):
+    """stim._peak_counts over the last n samples of the window buf (1 sample: that one): the
+    larger of the largest min of two neighbouring samples and the last sample before the
+    largest drop capped at its predecessor + 8 + 1/64. PEAK == "end": the sample just before
+    the fall (`edge`: the window index of the first sample after it), a bound without a guard;
+    "pairmin": the pair-min part alone (the strict guard, 2-4 us early)."""
+    w = len(buf)
+    lo = w - n
     if n <= 0:
         return 0
-    if n < 3:
-        return min(buf[0], buf[1]) if n == 2 else buf[0]
-    if PEAK == "end":  # what an estimator that keeps the end of the pulse would read (no spike guard: a bound)
-        return max(buf[n - 1], _peak3_median(buf, n))
-    return _peak3_median(buf, n)
-
-
-def _peak3_median(buf, n):
-    best = 0
-    for k in range(2, n):
-        a, b, x = buf[k - 2], buf[k - 1], buf[k]
-        m = max(min(a, b), min(max(a, b), x))
-        best = max(best, m)
+    if PEAK == "end" and edge is not None and edge - 1 >= lo:
+        return buf[edge - 1]
+    if n == 1:
+        return buf[w - 1]
+    best = max(min(buf[k - 1], buf[k]) for k in range(lo + 1, w))
+    if PEAK == "pairmin":
+        return best
+    e = max(range(lo + 1, w), key=lambda k: (buf[k - 1] - buf[k], k))
+    if e - 1 > lo:
+        y = buf[e - 2]
+        best = max(best, min(buf[e - 1], y + 8 + (y >> 6)))
     return best
 
 
 class Meter:
     """Rp as the firmware reads it, through the simulated board (board_sim.SimBoard,
     `real` = the realistic analog path, `ideal` = the ideal one): the DAC's code,
-    the ADC samples, the median-of-3 peak in mV, Rp = Vp / I_delivered. A frame
+    the ADC's window of samples around the fall, the firmware's peak in mV, Rp = Vp / I_delivered. A frame
     (20 ms at 50 Hz) passes between pulses, so the DAC settles as on the board."""
 
     def __init__(self, e, board, seed=1, correction=None, adc_us=None):
@@ -221,7 +226,6 @@ class Meter:
         self.b = board_sim.SimBoard(c, board_sim.VirtualClock(), _Hold(e), 1, seed, electrodes=[e],
                                     ideal=(board == "ideal"), correction=correction)
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
-        self.b.align_end = PEAK == "end"
 
     def pulse(self, i_ua, t_us):
         """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse."""
@@ -229,7 +233,7 @@ class Meter:
         di = b.set_amplitude(0, i_ua)
         b.clock.advance(20000 - t_us)
         n = b.fire(0, t_us)
-        vp = _peak3(b.adc[0], n) * cfg.VMON_UV_PER_COUNT // 1000
+        vp = peak_counts(b.adc[0], n, b.last_edge[0]) * cfg.VMON_UV_PER_COUNT // 1000
         rp = sc.RP_OVER if vp >= self.vp_off else sc.rp_from_vp(vp, di)
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 
@@ -303,6 +307,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
     h_target, tau = e.h, 0.0
     rows = []
     measured = []  # with a board: the rows as the controller sees them (delivered I, measured Rp and mQ)
+    true_rp = []  # ... and the electrode's true end-of-pulse Rp of each pulse (ohm; --surges)
     ev = {x.pulse: x for x in events}
     for k in range(n):
         if k in ev:
@@ -327,6 +332,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             mq = (i_true * t - Y) * 1000 / (rp_true - X) if math.isfinite(rp_true) else float("nan")
             rows.append((k, i, t, rp, mq, c.status))
             measured.append((k, di, t, rp, (di * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan"), c.status))
+            true_rp.append(rp_true)
             c.update(rp)
             if mode == ORACLE and c.i_ua > 0:
                 oracle_pulse(c, e, i * t)
@@ -343,6 +349,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             oracle_pulse(c, e, i * t)
     if target_true is not None:
         FIT_INFO["measured"] = (np.array(measured, dtype=float).reshape(-1, 6), c.mq_target_fc_per_ohm)
+        FIT_INFO["true_rp"] = true_rp
         return np.array(rows, dtype=float), target_true, c.me_ua2ms * 1000
     return np.array(rows, dtype=float), c.mq_target_fc_per_ohm, c.me_ua2ms * 1000
 
@@ -436,16 +443,18 @@ def main():
                          "(ideal, or real: the parts' errors, docs/simulation.md)")
     ap.add_argument("--correct", action="store_true", help="with --board real: the self-test's monitor correction")
     ap.add_argument("--sweeps", type=int, default=10, help="repeated calibration sweeps for the averaged fit (study)")
-    ap.add_argument("--peak", choices=["median3", "end"], default="median3",
-                    help="the peak estimator: the firmware's (default) or the end-of-pulse sample of an "
-                         "end-aligned capture (what fixing the early read would give)")
+    ap.add_argument("--peak", choices=["firmware", "end", "pairmin"], default="firmware",
+                    help="the peak estimator: the firmware's (default), the last sample before the fall (no "
+                         "guard: a bound) or the firmware's strict half (the largest min of two neighbours)")
     ap.add_argument("--skip", default="", help="comma-separated scenarios to leave out, e.g. exercise")
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
                     help="only the study on N unseen electrodes (steps; 1 %% settling, surges)")
+    ap.add_argument("--surges", action="store_true", help="study: one line per step surging > 5 %% (why)")
     a = ap.parse_args()
-    global PEAK
+    global PEAK, SURGES
     PEAK = a.peak
+    SURGES = a.surges
     if a.study:
         print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise)
         return
@@ -549,12 +558,14 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
     for k in range(n_electrodes):
         mk = random_electrode(rng)
         runs = {}
+        true_rps = {}
         for name, (mode, sw) in STUDY_MODES.items():
             rows, target, me = run(mode, STUDY_EVENTS, STUDY_N, i0=i0, board=board, sweeps=sw or sweeps,
                                    electrode=mk, correction=corr, seed=1000 + k, adc_us=adc_us, noise=noise)
             if mode == sc.MODE_FAST and not sw:
                 trust.append(FIT_INFO.get("trusted", False))
             runs[name] = (rows, target, FIT_INFO.get("measured"))
+            true_rps[name] = FIT_INFO.get("true_rp")
         ref_rows = runs["fast, no model"][0]
         starts = [x.pulse for x in STUDY_EVENTS] + [STUDY_N]
         for j, (a, b) in enumerate(zip(starts, starts[1:])):
@@ -566,11 +577,33 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
                 st, su, ou = within(rows, target, STUDY_EVENTS, STUDY_N, tol)
                 res[name]["settle"].append(st[j] if st[j] is not None else 10**6)
                 res[name]["surge"].append(su[j])
+                if su[j] > 0.05 and true_rps.get(name) is not None:
+                    res[name].setdefault("why", []).append(surge_detail(k, j, a, b, rows, target, meas, true_rps[name]))
                 res[name]["out"].append(ou[j])
                 if meas is not None:  # the controller's own view: measured mQ against its measured target
                     sm, _, _ = within(meas[0], meas[1], STUDY_EVENTS, STUDY_N, tol)
                     res[name]["seen"].append(sm[j] if sm[j] is not None else 10**6)
     return res, trust, skipped
+
+
+STEP_NAMES = ["gel on (h 0.3)", "gel off (h 1)", "half peeled", "pressed back"]
+
+
+def surge_detail(k, j, a, b, rows, target, meas, true_rp):
+    """One surging step (felt mQ > 5 % above target after the first corrected pulse): the
+    worst pulse, the pulse before it (whose measurement set it), the measured vs true Rp
+    there, the charge change and the core's bound flags."""
+    kk, i, t, rp, mq, st = rows.T
+    rel = (mq[a:b] - target) / target
+    w = a + 2 + int(np.nanargmax(rel[2:]))
+    p = w - 1
+    err = (meas[0][p, 3] - true_rp[p]) / true_rp[p] if true_rp[p] else float("nan")
+    flags = "+".join(n for n, f in (("I_MIN", sc.ST_I_MIN), ("I_MAX", sc.ST_I_MAX), ("T_MIN", sc.ST_T_MIN),
+                                      ("T_MAX", sc.ST_T_MAX), ("Q_MAX", sc.ST_Q_MAX)) if int(st[w]) & f) or "-"
+    return (f"electrode {k}, {STEP_NAMES[j]}: pulse {w - a} +{rel[w - a]:.1%} "
+            f"(I {i[p]:.0f} -> {i[w]:.0f} uA, T {t[p]:.0f} -> {t[w]:.0f} us, Q x{i[w] * t[w] / (i[p] * t[p]):.2f}); "
+            f"Rp read before it {meas[0][p, 3]:.0f} ohm vs true {true_rp[p]:.0f} ({err:+.1%}); "
+            f"true Rp then -> at it {true_rp[p]:.0f} -> {true_rp[w]:.0f} ohm; bounds {flags}")
 
 
 def _pct(xs):
@@ -585,7 +618,7 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
     total = len(next(iter(res.values()))["settle"])
     print(f"\n{n} unseen electrodes x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
-          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{', end-of-pulse peak' if PEAK == 'end' else ''}"
+          f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{f', peak: {PEAK}' if PEAK != 'firmware' else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
           f"({skipped} left out); averaged fit trusted on {sum(trust)} of {len(trust)} electrodes "
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")
@@ -601,6 +634,10 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
         print(f"| {name} | {np.median(fin):g} / {np.percentile(fin, 90, method='higher'):g} / {fin.max():g} | {never} | "
               f"{np.mean(r['out']):.0%} | "
               f"{su.max():+.1%} / {int(np.sum(su > 0.05))} | {_pct(r['seen'])} |")
+    if SURGES:
+        for name, r in res.items():
+            for line in r.get("why", []):
+                print(f"  - surge, {name}: {line}")
     return res
 
 

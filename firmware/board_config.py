@@ -38,7 +38,8 @@ DAC_CS_PINS = (17, 20)  # one chip-select per MCP4822 (2 channels each), idle hi
 DAC_SPI_HZ = const(10000000)  # the MCP4822 takes up to 20 MHz
 # ---- scales ----
 AMP_UA_AT_FULL = const(10000)  # current at DAC code 4096 (2.048 V x the buffer's gain): LSB = 2.44 uA
-ADC_SAMPLE_US = const(10)  # free-running ADC at 100 ksps during the pulse
+ADC_SAMPLE_US = const(2)  # free-running ADC at its full 500 ksps across the pulse (96 ADC clocks a conversion)
+ADC_WINDOW = const(32)  # samples kept of each capture: its last 64 us, the falling edge among them (a DMA ring)
 VMON_UV_PER_COUNT = const(27000)  # electrode uV per 12-bit ADC count (monitor gain and divider)
 PIO_FREQ_HZ = const(1000000)  # 1 us per PIO cycle
 WATCHDOG_MS = const(500)

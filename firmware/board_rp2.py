@@ -32,6 +32,21 @@ _FCS_ERR_FLAGS = const(0xC00)  # UNDER | OVER, write 1 to clear
 _DREQ_ADC = const(36)
 _DMA_CHAN_ABORT = const(0x50000444)
 _ADC_CLK_HZ = const(48000000)
+# The capture (issue 13): the ADC converts every ADC_SAMPLE_US = 2 us (its full rate), so
+# the last conversion before the gate's falling edge starts within the last 2 us of the
+# pulse whatever T and whatever the phase of the conversions against the gate (no CPU
+# timing is involved). The DMA writes into a ring of ADC_WINDOW samples, so each channel
+# keeps only the capture's last 64 us, in time order, ending _CAPTURE_POST_US after
+# the falling edge: the edge and the end of the pulse are always in it.
+# _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (the
+# Python between the two stores in start() plus the gate program's set-up: 12.0 us from
+# a bare loop, 13.1-14.4 us in the frame; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
+# edge there (~10 samples after it, ~22 before it in the window); a real chip's flash
+# cache misses only lengthen the lead, which moves the edge later in the window: up to
+# ~20 us more still leaves it inside (and a capture that ended early reads Vp low: a
+# lower charge, never a higher one).
+_CAPTURE_LEAD_US = const(12)
+_CAPTURE_POST_US = const(20)
 _T_FLOOR_US = hp.T_FLOOR_US
 # Instructions executed directly by stop(), encoded once at import (nothing per call)
 _PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
@@ -124,8 +139,8 @@ class Board:
         n = cfg.N_CHANNELS
         self.n_channels = n
         self.dt_us = cfg.ADC_SAMPLE_US
-        self.n_max = cfg.HARD_T_MAX_US // cfg.ADC_SAMPLE_US + 4
-        self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n)]
+        self.n_max = cfg.ADC_WINDOW
+        self.adc, self.adc_addr = self._windows(n, cfg.ADC_WINDOW)
         self.gates = [machine.Pin(cfg.GATE_PINS[k], machine.Pin.OUT, value=0) for k in range(n)]
         self.sms = []
         for k in range(n):
@@ -143,15 +158,16 @@ class Board:
             machine.ADC(26 + cfg.ADC_INPUTS[k])  # configures the pad as an analog input
         machine.mem32[_ADC_DIV] = (_ADC_CLK_HZ // 1000000 * cfg.ADC_SAMPLE_US - 1) << 8
         self.dma = rp2.DMA()
-        self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC)
+        ring = 2 * cfg.ADC_WINDOW  # bytes; the write address wraps inside the window (ring_sel: write)
+        self.dma_ctrl = self.dma.pack_ctrl(size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC,
+                                           ring_size=len(bin(ring)) - 3, ring_sel=True)
         # start() programs the channel by its registers (RP2040 datasheet 2.5.7: READ_ADDR,
         # WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at word 0..3), 3 stores instead of a
         # keyword call: the read address (the ADC FIFO) never changes, the buffers
         # never move (MicroPython's heap does not compact).
-        self.dma.config(read=_ADC_FIFO, write=self.adc[0], count=1, ctrl=self.dma.pack_ctrl(
+        self.dma.config(read=_ADC_FIFO, write=self.adc_addr[0], count=1, ctrl=self.dma.pack_ctrl(
             enable=False, size=1, inc_read=False, inc_write=True, treq_sel=_DREQ_ADC))
         self.dma_regs = self.dma.registers
-        self.adc_addr = [uctypes.addressof(self.adc[k]) for k in range(n)]
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.hard_t = cfg.HARD_T_MAX_US
         self.capturing = -1  # the channel whose pulse start() began and wait() has not ended
@@ -179,6 +195,23 @@ class Board:
         usb.device.get().init(hid, manufacturer_str="steadytouch", product_str="steadytouch stimulator",
                               id_vendor=hp.VID, id_product=hp.PID, builtin_driver=True)
         return hid
+
+    @staticmethod
+    def _windows(n, w):
+        """n capture windows of w samples (2w bytes, a power of 2), each aligned to its own
+        size as the DMA's write ring needs (RP2040 datasheet 2.5.1.2): views into arrays of 2w
+        samples (the heap aligns blocks to 8 or 16 bytes only). Returns (views, addresses)."""
+        size = 2 * w
+        if size & (size - 1) or size < 16:
+            raise ValueError("board_config.ADC_WINDOW must be a power of 2 >= 8")
+        views, addrs = [], []
+        for _ in range(n):
+            a = array("H", bytes(2 * size))
+            base = uctypes.addressof(a)
+            off = (-base) % size  # bytes to the next aligned address, < size
+            views.append(memoryview(a)[off // 2:off // 2 + w])
+            addrs.append(base + off)
+        return views, addrs
 
     # ------------------------------------------------------------ board API
     def irq_off(self):
@@ -230,8 +263,9 @@ class Board:
     def start(self, ch, t_us):
         """Start one pulse of t_us at the set amplitude and the capture of the
         monitor across it; returns at once with the number of samples the capture
-        will hold. The PIO gate times the pulse and the DMA fills adc[ch] while
-        the CPU goes on; wait() ends the capture. One capture at a time (one ADC):
+        will hold: the last n of adc[ch], in time order, the falling edge among
+        them (the capture's last 64 us, see _CAPTURE_LEAD_US). The PIO gate
+        times the pulse and the DMA fills adc[ch] while the CPU goes on; wait() ends the capture. One capture at a time (one ADC):
         a capture still running is waited for first. Allocates nothing.
 
         The board's own last check: t_us outside [T_FLOOR_US, HARD_T_MAX_US] is
@@ -242,15 +276,16 @@ class Board:
         if not _T_FLOOR_US <= t_us <= self.hard_t:
             self.refused += 1
             return 0
-        n = t_us // self.dt_us + 2  # a few samples past the falling edge
-        if n > self.n_max:
-            n = self.n_max
+        total = (t_us + _CAPTURE_LEAD_US + _CAPTURE_POST_US) // self.dt_us  # conversions, to past the fall
+        w = self.n_max
+        first = (w - total % w) % w  # the ring's first slot: the capture's last sample lands in the window's last
+        n = total if total < w else w  # what the window keeps
         mem = machine.mem32
         sel = self.ainsel[ch]
         _adc_arm(sel)
         regs = self.dma_regs
-        regs[1] = self.adc_addr[ch]
-        regs[2] = n
+        regs[1] = self.adc_addr[ch] + 2 * first
+        regs[2] = total
         regs[3] = self.dma_ctrl  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
         self.capturing = ch
         sm = self.sms[ch]

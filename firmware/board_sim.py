@@ -31,6 +31,15 @@ ADC_DNL_WIDTH = 9  # those codes are ~9 LSB wide (DNL ~ +8 LSB); their neighbour
 MON_GAIN = (1.0150, 0.9880, 1.0070, 0.9930)  # per channel: divider tolerance x ADC reference
 MON_OFFSET_MV = (160, -110, 80, 220)  # per channel, electrode-referred: amplifier + ADC offset
 IDEAL_NOISE_COUNTS = 1.5  # the ideal board's ADC noise (as before the realistic model)
+# ---- the capture, as board_rp2 makes it on the chip (docs/simulation.md, "Voltage monitor and ADC") ----
+# The ADC converts every cfg.ADC_SAMPLE_US from its start, a lead before the gate rises
+# (on the emulated chip 13.1-14.4 us in the frame, varying with the code path; a real
+# chip adds flash-cache misses), for (T + 12 + 20) // dt conversions (board_rp2.
+# _CAPTURE_LEAD_US, _CAPTURE_POST_US); the board keeps the last cfg.ADC_WINDOW of them, in
+# time order, at the end of adc[ch]. The simulated lead is drawn per pulse from
+# CAPTURE_LEAD_US (a 2 us span: every phase of the conversions against the edge).
+CAPTURE_LEAD_US = (13.0, 15.0)
+CAPTURE_COUNT_US = 12 + 20
 
 
 class AnalogPath:
@@ -237,8 +246,11 @@ class SimBoard:
         self.rng = random
         random.seed(seed)
         self.dt_us = cfg.ADC_SAMPLE_US
-        self.n_max = cfg.HARD_T_MAX_US // cfg.ADC_SAMPLE_US + 2
+        self.n_max = cfg.ADC_WINDOW
         self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n_channels)]
+        self.lead_us = None  # the ADC's start before the gate's rise (us); None: drawn per pulse (CAPTURE_LEAD_US)
+        self.last_rise = [0] * n_channels  # window index of the last pulse's first sample in the pulse (tests)
+        self.last_edge = [0] * n_channels  # ... and of its first sample after the fall
         self.amp = [0] * n_channels  # the delivered current the firmware was told (uA)
         self.code = [0] * n_channels  # the DAC code
         self.i_from = [0.0] * n_channels  # physical current (uA) when the DAC was last written
@@ -254,7 +266,6 @@ class SimBoard:
         self.compliance_mv = cfg.COMPLIANCE_MV
         self.last_rp_kohm = [0.0] * n_channels  # the true Rp of the last pulse (kohm)
         self.last_i_ua = [0.0] * n_channels  # the true (physical) current of the last pulse (uA)
-        self.align_end = False  # True: the ADC's last sample lands on the pulse's end (capture started T mod dt late)
         self.cal_path = None
         self.vmon_state = 0  # hp.VMON_NONE
         self.vmon_cal = [None] * n_channels
@@ -322,28 +333,33 @@ class SimBoard:
         self._advance_scenario()
 
     def fire(self, ch, t_us):
-        """Gate a pulse of t_us at the set amplitude; fill adc[ch]; return the sample count."""
+        """Gate a pulse of t_us at the set amplitude and capture the monitor as the
+        chip does: conversions every dt_us from lead_us before the rise to past the
+        fall, the last n (<= ADC_WINDOW) kept at the end of adc[ch] in time order;
+        returns n. After the fall no current flows: the skin's capacitance
+        discharges through Rp_skin (the Rs drop is gone at once)."""
         self._advance_scenario()
         an = self.analog
         i_set = an.physical_ua(ch, self.code[ch]) if not self.ideal else self.amp[ch]
-        n = t_us // self.dt_us
-        if n > self.n_max:
-            n = self.n_max
         buf = self.adc[ch]
-        if i_set <= 0 or n <= 0:
+        if i_set <= 0 or t_us <= 0:
             self.clock.advance(t_us)
             return 0
+        dt = self.dt_us
+        total = (t_us + CAPTURE_COUNT_US) // dt
+        w = self.n_max
+        n = total if total < w else w
         self.pulses[ch] += 1
         e = self.electrodes[ch]
         uv = self.cfg.VMON_UV_PER_COUNT
         full = self.compliance_mv
+        exp = 2.718281828459045
         if e.pulse(i_set):
             rs, rp, tau = e.rs, e.rp_skin, e.tau
-            self.last_rp_kohm[ch] = rs + rp * (1.0 - 2.718281828459045 ** (-t_us / tau))
-            decay = 2.718281828459045 ** (-self.dt_us / tau)
+            self.last_rp_kohm[ch] = rs + rp * (1.0 - exp ** (-t_us / tau))
             on = True
         else:
-            rs, rp, decay = 0.0, 0.0, 0.0  # off: the stimulator hits compliance
+            rs, rp, tau = 0.0, 0.0, 1.0  # off: the stimulator hits compliance
             self.last_rp_kohm[ch] = float("inf")
             on = False
         g = self.glitch[ch] or 1.0
@@ -354,23 +370,35 @@ class SimBoard:
         off = an.mon_off_counts[ch]
         dnl = an.dnl
         since = self.clock.ticks_diff(self.clock.ticks_us(), self.t_set[ch])
-        left = 1.0  # e^(-t/tau) at t = (k+1) dt (+ lag)
-        lag = 0
-        if self.align_end and on:
-            lag = t_us - n * self.dt_us
-            left = 2.718281828459045 ** (-lag / tau)
-        i_end = i_set
-        for k in range(n):
-            left *= decay
-            if self.ideal:
-                i_ma = i_set / 1000.0
+        i_end = i_set if self.ideal else self._level_ua(ch, since + t_us)
+        v_cap_mv = i_end / 1000.0 * rp * (1.0 - exp ** (-t_us / tau)) * 1000.0 if on else 0.0  # Rp || C at the fall
+        lead = self.lead_us
+        if lead is None:
+            lead = CAPTURE_LEAD_US[0] + (CAPTURE_LEAD_US[1] - CAPTURE_LEAD_US[0]) * rnd()
+        t0 = (total - n) * dt - lead  # the first kept conversion, from the rise (us)
+        edge = w
+        rise = w
+        for j in range(n):
+            t = t0 + j * dt
+            if t < 0.0:
+                mv = 0.0  # before the rise
+            elif t < t_us:
+                if rise == w:
+                    rise = w - n + j
+                if not on:
+                    mv = full
+                else:
+                    i_ma = (i_set if self.ideal else self._level_ua(ch, since + t)) / 1000.0
+                    mv = i_ma * (rs + rp * (1.0 - exp ** (-t / tau))) * 1000.0
+                    if mv > full:
+                        mv = full  # compliance: the output cannot drive more voltage
             else:
-                i_end = self._level_ua(ch, since + lag + (k + 1) * self.dt_us)
-                i_ma = i_end / 1000.0
-            mv = full if not on else i_ma * (rs + rp * (1.0 - left)) * 1000.0
-            if mv > full:
-                mv = full  # compliance: the output cannot drive more voltage
-            if self.ideal:  # the same operations as before the realistic model: bit for bit
+                if edge == w:
+                    edge = w - n + j
+                mv = v_cap_mv * exp ** (-(t - t_us) / tau) if on else 0.0
+                if mv > full:
+                    mv = full
+            if self.ideal:
                 counts = mv * 1000.0 / uv * g + (rnd() + rnd() + rnd() - 1.5) * sig2
             else:
                 counts = mv * gain + off + (rnd() + rnd() + rnd() - 1.5) * sig2
@@ -378,11 +406,15 @@ class SimBoard:
             c = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
             if dnl is not None:
                 c = dnl[c]
-            buf[k] = c
+            buf[w - n + j] = c
+        self.last_rise[ch] = rise
+        self.last_edge[ch] = edge
         v_end = i_end / 1000.0 * self.last_rp_kohm[ch] * 1000.0 if on else full
         self.last_i_ua[ch] = i_end if v_end <= full else full / self.last_rp_kohm[ch]
         if self.spike[ch]:
-            buf[n // 2] = ADC_MAX
+            k = edge - 1  # the last sample of the pulse: where a spike would count most
+            if k >= w - n:
+                buf[k] = ADC_MAX
             self.spike[ch] = 0
         self.clock.advance(t_us)
         return n

@@ -62,33 +62,51 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 
 
+_EDGE_RISE_COUNTS = const(8)  # what the last sample may rise above its predecessor: noise (~3 sigma) ...
+_EDGE_RISE_SHIFT = const(6)  # ... plus 1/64 of it (the steepest genuine rise in 2 us at T >= 100 us is ~1.5 %)
+
+
 @micropython.viper
-def _peak3(buf, n: int) -> int:
-    """Largest median of 3 neighbouring samples of buf[0:n] (an array('H') of
-    12-bit ADC counts, n >= 3). The median of (a, b, c) is the largest of
-    min(a, b), min(a, c), min(b, c), so the largest median is the largest min
-    over every pair of samples at most 2 apart. Scanned from the end: the peak
-    is near the falling edge, and a sample no larger than the best so far cannot
-    improve it (one comparison). Viper: machine code on the rp2 (mpy-cross
-    -march=armv6m) and in the unix VM; nothing allocated. Every value is < 4096,
-    so 32-bit (ARM) and 64-bit (x64) words agree."""
+def _peak_counts(buf, lo: int, hi: int) -> int:
+    """The end-of-pulse voltage (12-bit ADC counts) in buf[lo:hi], an array('H')
+    window of consecutive samples 2 us apart that holds the gate's falling edge:
+    the larger of
+      - the largest min of two neighbouring samples (on a pulse: the sample
+        2-4 us before the edge; one wild sample can never lift it above a
+        genuine sample), and
+      - the last sample before the largest drop (the edge: on a pulse, within
+        its last 2 us), capped at its predecessor + 8 counts + 1/64.
+    Spike guard: one wild sample, high or low, anywhere, can never make the
+    result exceed the largest genuine sample by more than 8 counts + 1/64 of it
+    (~0.3 V + 1.6 %): it cannot read Rp much high, and a high Rp is what raises
+    the charge (mQ ~ Q / (Rp - x*)); the frame's rule that a raise needs two
+    measurements in a row (the smaller) keeps one such pulse from raising it.
+    hi - lo == 1: that sample. Viper: machine code on the rp2, nothing allocated;
+    every value is < 4096 + 8 + 64, so 32-bit (ARM) and 64-bit (x64) words agree."""
     p = ptr16(buf)
+    if hi - lo < 2:
+        return int(p[lo]) if hi > lo else 0
     best = 0
-    k = n - 1
-    while k >= 2:
+    drop = -4096
+    e = hi
+    k = hi - 1
+    while k > lo:  # from the end: on equal drops the latest wins
         x = int(p[k])
-        if x > best:
-            y = int(p[k - 1])
-            if y > best:
-                best = y if y < x else x
-            y = int(p[k - 2])
-            if y > best:
-                best = y if y < x else x
+        y = int(p[k - 1])
+        if (y if y < x else x) > best:
+            best = y if y < x else x
+        if y - x > drop:
+            drop = y - x
+            e = k
         k -= 1
-    x = int(p[1])
-    y = int(p[0])
-    if x > best and y > best:
-        best = y if y < x else x
+    if e - 1 > lo:
+        x = int(p[e - 1])
+        y = int(p[e - 2])
+        y += _EDGE_RISE_COUNTS + (y >> _EDGE_RISE_SHIFT)
+        if x > y:
+            x = y
+        if x > best:
+            best = x
     return best
 
 
@@ -396,20 +414,15 @@ class Stimulator:
         c.ad = 0
 
     def _measure(self, c):
-        """Vp: the peak of the captured pulse in mV, the largest median of 3
-        neighbouring samples, so a single-sample spike cannot set it (fewer than 3
-        samples: the smallest; a low reading can only lower the charge). Rp from
-        Vp and the delivered current (0: no pulse)."""
+        """Vp: the end-of-pulse voltage in mV (_peak_counts over the board's window
+        of the last n samples, the falling edge among them, with its spike guard). Rp from Vp and the delivered
+        current (0: no pulse)."""
         n = c.n_samples
         buf = c.adc
-        if n <= 0:
-            v = 0
-        elif n < 3:
-            v = buf[0]
-            if n == 2 and buf[1] < v:
-                v = buf[1]
-        else:
-            v = _peak3(buf, n)
+        v = 0
+        if n > 0:
+            w = len(buf)
+            v = _peak_counts(buf, w - n, w)
         k = c.vmon_k  # the monitor's gain and offset out (vmon_cal.correct, inlined; monotonic:
         if k:  # the corrected peak is the peak of the corrected samples)
             v = ((v * 16 - c.vmon_o) * k + 65536) >> 17

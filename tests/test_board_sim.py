@@ -53,10 +53,11 @@ def test_the_dac_settles_first_order_in_its_datasheet_time():
 
 
 def _pulse_counts(b, ch, i_ua, t_us):
+    """The samples of the window taken while the gate was high."""
     b.set_amplitude(ch, i_ua)
     b.clock.advance(20000)
-    n = b.fire(ch, t_us)
-    return list(b.adc[ch][:n])
+    b.fire(ch, t_us)
+    return list(b.adc[ch][b.last_rise[ch]:b.last_edge[ch]])
 
 
 def test_adc_noise_is_the_datasheet_enob_and_the_ideal_board_keeps_1_5_counts():
@@ -122,3 +123,47 @@ def test_correction_integers_stay_below_2_30_at_the_accepted_extremes():
 def test_a_bad_correction_file_is_refused_naming_the_line(text, words):
     with pytest.raises(ValueError, match=words):
         board_sim.parse_correction(text, 2)
+
+
+@pytest.mark.parametrize("t_us", [20, 21, 33, 99, 100, 101, 333, 1000, 2001, 8000])
+def test_the_capture_is_the_chips_window_with_the_falling_edge_in_it(t_us):
+    """As board_rp2 on the chip (tests/chip/test_chip_adc.py): the last min((T + 32) // 2, 32)
+    conversions 2 us apart, the falling edge among them with the last conversion before it
+    in the pulse's last 2 us; on a resistor, the samples in the pulse read the load and
+    the ones after the fall read nothing (no current)."""
+    b = board(ideal=True, load_ohm=10000, noise=0.0)
+    for lead in (13.0, 13.7, 14.99, None):
+        b.lead_us = lead
+        b.set_amplitude(0, 1000)
+        b.clock.advance(20000)
+        n = b.fire(0, t_us)
+        w = cfg.ADC_WINDOW
+        assert n == min((t_us + 32) // cfg.ADC_SAMPLE_US, w)
+        rise, edge = b.last_rise[0], b.last_edge[0]
+        assert w - n <= rise < edge < w and w - edge >= 5  # the edge in the window, samples after it
+        first_t = (t_us + 32) // cfg.ADC_SAMPLE_US * cfg.ADC_SAMPLE_US - n * cfg.ADC_SAMPLE_US  # from the ADC start
+        if lead is not None:
+            t_last = first_t + (edge - 1 - (w - n)) * cfg.ADC_SAMPLE_US - lead  # from the rise
+            assert t_us - cfg.ADC_SAMPLE_US <= t_last < t_us
+        v = list(b.adc[0])
+        level = round(1000 * 10000 / cfg.VMON_UV_PER_COUNT)  # 10 V in counts
+        assert v[rise:edge] == [level] * (edge - rise)
+        assert v[edge:] == [0] * (w - edge) and v[w - n:rise] == [0] * (rise - w + n)
+
+
+def test_the_firmware_read_of_an_electrode_is_its_end_of_pulse_rp_within_the_last_4_us():
+    """The pair-min of the window (stim._peak_counts' rule) on an Rs + (Rp || C) electrode,
+    no noise: between the model 4 us before the end and the model at the end, within a count."""
+    e = sim_electrode.Electrode()
+    b = board_sim.SimBoard(cfg, board_sim.VirtualClock(), sim_electrode.scenario("steady"), 1, 3,
+                           electrodes=[e], ideal=True, noise_counts=0.0)
+    for t_us in (20, 100, 101, 1000):
+        b.set_amplitude(0, 1000)
+        b.clock.advance(20000)
+        n = b.fire(0, t_us)
+        v = list(b.adc[0])[cfg.ADC_WINDOW - n:]
+        got_mv = max(min(x, y) for x, y in zip(v, v[1:])) * cfg.VMON_UV_PER_COUNT / 1000
+        end_mv = 1000 / 1000 * (e.rs + e.rp_skin * (1 - math.exp(-t_us / e.tau))) * 1000
+        early_mv = 1000 / 1000 * (e.rs + e.rp_skin * (1 - math.exp(-(t_us - 4) / e.tau))) * 1000
+        count_mv = cfg.VMON_UV_PER_COUNT / 1000
+        assert early_mv - count_mv <= got_mv <= end_mv + count_mv, (t_us, got_mv, early_mv, end_mv)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from .harness import EMULATOR, HERE, NO_EMULATOR, ChipUnavailable, NoEmulator, load_cfg, start_host
+from .harness import EMULATOR, HERE, NO_EMULATOR, ChipUnavailable, NoEmulator, load_cfg, make_board, start_host
 
 
 def pytest_collection_modifyitems(config, items):
@@ -43,6 +43,22 @@ def chip_host(mpy_cross):
 def chip(chip_host):
     """A freshly booted chip (the device files in /lib), no board constructed yet."""
     return chip_host.boot(chip_host.image)
+
+
+@pytest.fixture(scope="module")
+def board(chip_host, cfg):
+    """One chip with the real board_rp2.Board (as `b` on the board) for a test module."""
+    chip = chip_host.boot(chip_host.image)
+    make_board(chip, cfg)
+    return chip
+
+
+@pytest.fixture()
+def on_board(board):
+    """The module's chip with its Board, every channel stopped and the host's records taken."""
+    board.exec("b.stop_all()")
+    board.take()
+    return board
 
 
 @pytest.fixture(scope="session")

@@ -13,7 +13,7 @@ import pytest
 
 import sensation_core as sc
 
-from .harness import FIRMWARE, make_board
+from .harness import FIRMWARE
 
 _spec = importlib.util.spec_from_file_location("dac_mcp4822", FIRMWARE / "dac_mcp4822.py")
 dac = importlib.util.module_from_spec(_spec)
@@ -38,20 +38,6 @@ print(rows)
 """
 
 
-@pytest.fixture(scope="module")
-def board(chip_host, cfg):
-    chip = chip_host.boot(chip_host.image)
-    make_board(chip, cfg)
-    return chip
-
-
-@pytest.fixture()
-def chip(board):
-    board.exec("b.stop_all()")
-    board.take()
-    return board
-
-
 def lsb_ua(cfg):
     return cfg.AMP_UA_AT_FULL / dac.CODES
 
@@ -62,15 +48,15 @@ def check_word(word, ch, code):
     assert word & 0xFFF == code
 
 
-def test_every_pulse_of_a_run_has_its_code_written_and_settled_before_the_gate_opens(chip, cfg):
+def test_every_pulse_of_a_run_has_its_code_written_and_settled_before_the_gate_opens(on_board, cfg):
     # Rp changes every pulse on both channels, so the controller moves the current every frame
-    chip.host.call("load", ch=0, load={"cycle": [{"rs_ohm": 0, "rp_ohm": r, "tau_us": 0}
+    on_board.host.call("load", ch=0, load={"cycle": [{"rs_ohm": 0, "rp_ohm": r, "tau_us": 0}
                                                  for r in (10000, 14000, 8000, 12000, 9000)]})
-    chip.host.call("load", ch=1, load={"cycle": [{"rs_ohm": 470, "rp_ohm": r, "tau_us": 0}
+    on_board.host.call("load", ch=1, load={"cycle": [{"rs_ohm": 470, "rp_ohm": r, "tau_us": 0}
                                                  for r in (4700, 6100, 3900)]})
     frames = 12
-    rows = chip.eval_out(RUN.format(n=2, mode=sc.MODE_AKHTAR, i0=1000, t0=1000, frames=frames))
-    r = chip.take()
+    rows = on_board.eval_out(RUN.format(n=2, mode=sc.MODE_AKHTAR, i0=1000, t0=1000, frames=frames))
+    r = on_board.take()
     pulses, writes = r["pulses"], r["dac_writes"]
     fired = [row for row in rows if row[3]]
     assert len(fired) == len(pulses) == 2 * frames
@@ -92,24 +78,24 @@ def test_every_pulse_of_a_run_has_its_code_written_and_settled_before_the_gate_o
         assert di == dac.ua_for(code, cfg.AMP_UA_AT_FULL) == int(p["i_ua"] + 0.5)
 
 
-def test_stop_writes_code_0_and_a_latched_channel_is_left_at_0(chip, cfg):
-    chip.load(0, rp_ohm=10000)
-    chip.host.call("load", ch=1, load={"open": True})  # electrode off: the first pulse latches channel 1
-    rows = chip.eval_out(RUN.format(n=2, mode=sc.MODE_AKHTAR, i0=2000, t0=500, frames=3))
-    r = chip.take()
+def test_stop_writes_code_0_and_a_latched_channel_is_left_at_0(on_board, cfg):
+    on_board.load(0, rp_ohm=10000)
+    on_board.host.call("load", ch=1, load={"open": True})  # electrode off: the first pulse latches channel 1
+    rows = on_board.eval_out(RUN.format(n=2, mode=sc.MODE_AKHTAR, i0=2000, t0=500, frames=3))
+    r = on_board.take()
     assert [row[6] for row in rows if row[0] == 1][0] != 0 and r["dac_codes"][0] == dac.code_for(2000, 10000)
     after = [w for w in r["dac_writes"] if w[1] == 1 and w[0] > r["pulses"][1]["fall_ns"]]
     assert after and all(w[2] & 0xFFF == 0 for w in after)  # stopped: code 0 ever since
-    chip.exec("b.stop_all()")
-    r = chip.take()
+    on_board.exec("b.stop_all()")
+    r = on_board.take()
     assert r["dac_codes"][:2] == [0, 0]
     assert sorted((w[1], w[2]) for w in r["dac_writes"]) == [(0, dac.word(0, 0)), (1, dac.word(1, 0))]
 
 
-def test_set_amplitude_clips_and_returns_the_delivered_current(chip, cfg):
+def test_set_amplitude_clips_and_returns_the_delivered_current(on_board, cfg):
     asks = [-5, 0, 1, 2, 3, 1000, 2500, 9997, 9998, 10000, 20000]
-    got = chip.eval(f"[b.set_amplitude(0, i) for i in {asks}]")
-    r = chip.take()
+    got = on_board.eval(f"[b.set_amplitude(0, i) for i in {asks}]")
+    r = on_board.take()
     codes = [w[2] & 0xFFF for w in r["dac_writes"]]
     assert codes == [dac.code_for(i, cfg.AMP_UA_AT_FULL) for i in asks]
     assert codes[-1] == dac.CODE_MAX and codes[:3] == [0, 0, 0]
@@ -117,10 +103,10 @@ def test_set_amplitude_clips_and_returns_the_delivered_current(chip, cfg):
     assert got[-1] == 9998 and all(g <= max(i, 0) for g, i in zip(got, asks))
 
 
-def test_the_dac_write_allocates_nothing_and_its_cost_in_emulated_us(chip, cfg):
+def test_the_dac_write_allocates_nothing_and_its_cost_in_emulated_us(on_board, cfg):
     """set_amplitude (code, SPI write of 2 bytes at DAC_SPI_HZ, chip select) under the heap lock;
     its cost in emulated us (deterministic; a lower bound for a real Pico): docs/performance.md."""
-    out = chip.exec("""
+    out = on_board.exec("""
 def dac_cost(n):
     micropython.heap_lock()
     try:
@@ -139,7 +125,7 @@ def dac_cost(n):
 ok, us = dac_cost(200)
 print(ok, us / 200)""")
     ok, us = out.split()
-    r = chip.take()
+    r = on_board.take()
     assert ok == "1" and len(r["dac_writes"]) == 200
     us = float(us)
     print(f"set_amplitude on the emulated chip: {us:.1f} us a write (SPI at {cfg.DAC_SPI_HZ / 1e6:g} MHz)")
