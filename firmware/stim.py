@@ -134,6 +134,7 @@ class Channel:
         self.n_samples = 0  # monitor samples captured across this frame's pulse
         self.adc = None  # into this buffer (the board's, bound by the Stimulator)
         self.vp = 0
+        self.vp_raw = 0  # Vp before the monitor correction (the electrode-off rule reads both)
         self.rp = 0
         self.held = False
         self.pi = 0  # the held proposal
@@ -144,6 +145,8 @@ class Channel:
         self.vmon_o = 0
         self.vmon_dac = 0  # the amplitude DAC's gain applied (ppm; 0: nominal)
         self.vmon_stored = None  # (gain ppm, offset mV, DAC gain ppm) the board's flash holds for this channel
+        self.hard_i_d = 0  # the hard limits for the current the board reports it delivers: lower than
+        self.hard_q_d = 0  # the Stimulator's by a stored DAC gain < 1 (_vmon_apply)
 
 
 class Stimulator:
@@ -193,6 +196,8 @@ class Stimulator:
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
         self._dac_gain = hasattr(board, "set_dac_gain")  # the board scales its DAC's full scale
         for c in self.chans:
+            c.hard_i_d = self.hard_i
+            c.hard_q_d = self.hard_q
             v = vm[c.ch] if vm and c.ch < len(vm) else None
             if v:
                 c.vmon_stored = v
@@ -341,7 +346,7 @@ class Stimulator:
             return
         if c.ai != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
             return
-        if ad > hard_i or ad * t > hard_q:  # a board that would deliver beyond the hard limits
+        if ad > c.hard_i_d or ad * t > c.hard_q_d:  # a board that would deliver beyond the hard limits
             self._latch(c, hp.STOP_LIMIT)
             return
         c.di = ad
@@ -423,6 +428,7 @@ class Stimulator:
         if n > 0:
             w = len(buf)
             v = _peak_counts(buf, w - n, w)
+        c.vp_raw = v * self.uv_per_count // 1000
         k = c.vmon_k  # the monitor's gain and offset out (vmon_cal.correct, inlined; monotonic:
         if k:  # the corrected peak is the peak of the corrected samples)
             v = ((v * 16 - c.vmon_o) * k + 65536) >> 17
@@ -441,7 +447,8 @@ class Stimulator:
         if c.di == 0:
             return False
         rp = c.rp
-        if c.vp >= self.vp_off_mv or rp > _RP_MAX_OHM:
+        # off: the corrected or the raw reading at compliance (a wrong stored gain > 1 must not hide it)
+        if c.vp >= self.vp_off_mv or c.vp_raw >= self.vp_off_mv or rp > _RP_MAX_OHM:
             self._latch(c, hp.STOP_ELECTRODE_OFF)
             c.ctl.stop(sc.ST_RP_HIGH)
             return False
@@ -840,7 +847,17 @@ class Stimulator:
         """Channel c's monitor correction (0, 0: none) and DAC gain (0: nominal) from now on;
         the output is set again before the next pulse (its current changes with the DAC's
         full scale). Allocates nothing."""
+        if dac_ppm != c.vmon_dac:  # the same code now delivers another current: calibrate again
+            c.have_cal = False
         c.vmon_dac = dac_ppm
+        hi = self.hard_i
+        hq = self.hard_q
+        if 0 < dac_ppm < 1000000:  # the board reports code x LSB x gain: a stored gain below the true one
+            f = dac_ppm // 100  # would let the real current past the limits, so the reported one is held
+            hi = hi * f // 10000  # to the limits x gain (products < 2**30: hard_i <= 2**16, f <= 11000)
+            hq = (hq // 10000) * f + (hq % 10000) * f // 10000
+        c.hard_i_d = hi
+        c.hard_q_d = hq
         if self._dac_gain:
             self.board.set_dac_gain(c.ch, dac_ppm)
         c.ai = 0  # _pulse: no pulse until _output has set the amplitude with the new scale
@@ -891,7 +908,9 @@ class Stimulator:
                 store = getattr(self.board, "store_vmon", None)
                 values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
                 values[ch] = (g, off, dac) if g or dac else None
+                self.board.feed_watchdog()  # a flash write may erase a sector: the full watchdog time for it
                 ok = store is not None and store(values)
+                self.board.feed_watchdog()
                 if ok:
                     c.vmon_stored = values[ch]
             finally:

@@ -29,6 +29,7 @@ Units: uA, us, mV, ohm; gains in ppm in the stored file.
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -263,6 +264,8 @@ def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600
         mv = float(text)
     except ValueError:
         raise SelfTestError(f"ch{ch}: scope reading {text!r} is not a number of mV") from None
+    if not math.isfinite(mv) or mv <= 0:
+        raise SelfTestError(f"ch{ch}: scope reading {text!r} must be a positive number of mV (the pulse's plateau)")
     g = mv * 1000.0 / (nominal * load_ohm)
     if not (GAIN_PPM_RANGE[0] <= round(g * 1e6) <= GAIN_PPM_RANGE[1]):
         raise SelfTestError(f"ch{ch}: {mv:g} mV on {load_ohm} ohm at {nominal} uA is a DAC gain of {g:.4f}, out of "

@@ -163,7 +163,9 @@ def test_selftest_with_a_scope_separates_the_dac_gain_from_the_monitors(tmp_path
     assert after < before
 
 
-@pytest.mark.parametrize("reading, words", [("abc", "is not a number"), ("90000", "DAC gain of 2.0"), ("", "stdin")])
+@pytest.mark.parametrize("reading, words", [("abc", "is not a number"), ("90000", "DAC gain of 2.0"), ("", "stdin"),
+                                            ("inf", "must be a positive number"), ("nan", "must be a positive number"),
+                                            ("-45000", "must be a positive number")])
 def test_a_bad_scope_reading_is_one_line_and_stores_nothing(tmp_path, reading, words):
     env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
     p = subprocess.run([EXE, "selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "2",

@@ -1,0 +1,94 @@
+"""A stored correction that is wrong but inside its accepted window must not make the
+device less safe (found by review, reproduced in the MicroPython VM on the realistic
+simulated board):
+- a monitor gain stored too high must not hide an electrode that came off (the raw
+  reading at compliance latches too);
+- a DAC gain stored too low must not let the physical charge past the hard limits (the
+  reported current is held to the limits x that gain);
+- a changed DAC gain changes the current a code delivers: the channel must be calibrated
+  again before it can be armed."""
+
+import hid_protocol as hp
+from fw_harness import run_fw
+
+SETUP = """
+import board_config as cfg
+from board_sim import SimBoard, VirtualClock, MemoryUSB
+
+def make(scen, rate=50):
+    clock = VirtualClock(0)
+    board = SimBoard(cfg, clock, sim_electrode.scenario(scen), 1, 1, MemoryUSB(True), ideal=False)
+    return stim.Stimulator(board, clock, cfg, 1, rate, 0), board, clock
+
+def cmd(s, clock, rep):
+    s.handle(bytearray(rep), clock.ticks_us())
+    s.sync_outputs()
+    return s.tx[hp.O_RESULT]
+"""
+
+
+def test_a_monitor_gain_stored_too_high_does_not_hide_an_electrode_off():
+    _, res, _ = run_fw(SETUP + """
+out = []
+for g in (0, 1015000, 1100000):
+    s, board, clock = make("off")
+    b = bytearray(64)
+    r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, g, 160 if g else 0)),
+         cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_AKHTAR)),
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 3000, 1000, -1670, 186000)),
+         cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+    s.run(300)
+    c = s.chans[0]
+    out.append([g, r, c.armed, c.stop, c.i * c.t])
+result(out=out)
+""")
+    for g, acks, armed, stop, q in res[0]["out"]:
+        assert acks == [hp.RES_OK] * 4, (g, acks)
+        assert not armed and stop == hp.STOP_ELECTRODE_OFF, (g, armed, stop, q)  # was: 1.1 stayed armed at 10 uC
+
+
+def test_a_dac_gain_stored_too_low_keeps_the_physical_charge_within_the_hard_limits():
+    _, res, _ = run_fw(SETUP + """
+out = []
+for dac in (0, 900000, 1100000):
+    s, board, clock = make("steady", 20)
+    b = bytearray(64)
+    r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac)),
+         cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 1250, 8000, -1670, 0)),
+         cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+    s.run(5)
+    c = s.chans[0]
+    out.append([dac, r, c.stop, c.di * c.dt, board.last_i_ua[0] * c.dt if c.dt else 0.0, s.hard_q])
+result(out=out)
+""")
+    for dac, acks, stop, q_reported, q_physical, hard_q in res[0]["out"]:
+        assert acks == [hp.RES_OK] * 4, (dac, acks)
+        assert q_reported <= hard_q and q_physical <= hard_q, (dac, stop, q_reported, q_physical)  # was 11.03 uC
+    nominal = res[0]["out"][0]
+    assert nominal[2] == hp.STOP_NONE and nominal[3] > 0  # the nominal DAC still pulses at its limit
+
+
+def test_a_changed_dac_gain_needs_a_new_calibration_before_arming():
+    _, res, _ = run_fw(SETUP + """
+s, board, clock = make("steady")
+b = bytearray(64)
+r = [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+     cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 3000, 300, -1670, 0)),
+     cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+s.run(3)
+r.append(cmd(s, clock, hp.cmd_disarm(b, hp.CH_ALL)))
+r.append(cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=900000)))
+r.append(cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL)))  # refused: the calibrated I0 is another current now
+armed_after = s.chans[0].armed
+r.append(cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 3000, 300, -1670, 0)))
+r.append(cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL)))
+same = cmd(s, clock, hp.cmd_disarm(b, hp.CH_ALL))
+r2 = cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 1010000, 0, dac_gain_ppm=900000))
+result(r=r, armed_after=armed_after, same=same, r2=r2, have_cal=s.chans[0].have_cal)
+""")
+    r = res[0]
+    assert r["r"][:5] == [hp.RES_OK] * 5, r
+    assert r["r"][5] != hp.RES_OK and not r["armed_after"], r
+    assert r["r"][6:] == [hp.RES_OK, hp.RES_OK], r
+    assert r["r2"] == hp.RES_OK and r["have_cal"]  # the monitor alone changed: the calibration stands
