@@ -122,7 +122,7 @@ def correction_text(fits: list[ChannelFit]) -> str:
 
 
 def measure(d, points, channels: list[int], pulses: int = 8, timeout_s: float = 10.0):
-    """Pulse every channel at each (I, T) point in open loop; {ch: [(i_ua, t_us, vp_mv), ...]}.
+    """Pulse the given channels (only them) at each (I, T) point in open loop; {ch: [(i_ua, t_us, vp_mv), ...]}.
     Leaves the device disarmed (Device.live disarms on any exit)."""
     from .protocol import Telemetry
 
@@ -133,9 +133,11 @@ def measure(d, points, channels: list[int], pulses: int = 8, timeout_s: float = 
 
     for i_ua, t_us in points:
         d.disarm()
-        d.calibrate(i_ua, t_us, 0, 0)  # open loop: every pulse is (I0, T0); x*, y* unused
         got = {ch: 0 for ch in channels}
-        with d.live(arm=hp.CH_ALL):
+        with d.live():
+            for ch in channels:  # only the channels asked for pulse (another may hold a person's electrodes)
+                d.calibrate(i_ua, t_us, 0, 0, ch=ch)  # open loop: every pulse is (I0, T0); x*, y* unused
+                d.arm(ch)
             end = time.monotonic() + timeout_s
             while min(got.values()) < pulses:
                 if time.monotonic() > end:

@@ -2,6 +2,7 @@
 simulated resistor (the realistic board's gain and offset errors, found and stored)."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -173,3 +174,14 @@ def test_a_bad_scope_reading_is_one_line_and_stores_nothing(tmp_path, reading, w
                        text=True, timeout=240, cwd=ROOT, env=env)
     assert p.returncode == 2 and words in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not (tmp_path / "vmon_cal.txt").exists()
+
+
+def test_selftest_of_one_channel_pulses_only_that_channel(tmp_path):
+    """--channel 0: the other channel may hold a person's electrodes; it is never armed (review:
+    it was calibrated and armed with every channel, only its readings were dropped)."""
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    p = subprocess.run([EXE, "selftest", "--load-ohm", "10000", "--device", "sim://steady", "--pulses", "2",
+                        "--channel", "0", "--no-store"], capture_output=True, text=True, timeout=300, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert re.search(r"selftest: \d+ pulses on 1 channel\(s\)", p.stdout + p.stderr), p.stdout + p.stderr
+    assert "on 2 channel(s)" not in p.stdout + p.stderr
