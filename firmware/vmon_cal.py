@@ -28,6 +28,7 @@ def parse(text, n_channels):
     if not lines or lines[0].strip() != CAL_HEADER:
         raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
     out = [None] * n_channels
+    seen = []
     for k in range(1, len(lines)):
         ln = lines[k].strip()
         if not ln or ln[0] == "#":
@@ -46,7 +47,11 @@ def parse(text, n_channels):
                                                                         CAL_GAIN_PPM[1], CAL_OFFSET_MV[0],
                                                                         CAL_OFFSET_MV[1], CAL_GAIN_PPM[0],
                                                                         CAL_GAIN_PPM[1]))
-        if 0 <= ch < n_channels and (g or dac):
+        if ch < 0 or ch in seen:  # two values for one channel: which one?
+            raise ValueError("correction file line %d: channel %d %s" % (k + 1, ch, "given twice" if ch >= 0
+                                                                        else "is negative"))
+        seen.append(ch)
+        if ch < n_channels and (g or dac):  # (a channel this board is not built with: kept in the file, unused)
             out[ch] = (g, off, dac)
     return out
 

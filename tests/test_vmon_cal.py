@@ -158,7 +158,9 @@ result(state0=state0, state1=state1, r=[r1, r2], raw=raw, after_reset=rps(s2), s
     assert abs(r["after_reset"][0] - 10000) <= 20 and r["after_reset"][1] == r["raw"][1]
     assert not (tmp_path / "vmon_cal.txt.tmp").exists()
     for bad in ("garbage\n", vmon_cal.CAL_HEADER + "\n0 5000000 0\n", vmon_cal.CAL_HEADER + "\n0 1000000\n",
-                "\xff\xfe\x00"):
+                "\xff\xfe\x00",
+                # ambiguous (review): a channel twice, a negative channel
+                vmon_cal.CAL_HEADER + "\n0 1000000 0\n0 1050000 0\n", vmon_cal.CAL_HEADER + "\n-1 1000000 0\n"):
         (tmp_path / "vmon_cal.txt").write_bytes(bad.encode("latin-1"))
         _, res, _ = run_fw(PULSES + f"""
 s = board(flash_dir={flash!r})
