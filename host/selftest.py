@@ -219,6 +219,13 @@ def store_on_device(d, fits: list[ChannelFit]) -> list:
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
 
 
+def scope_pulse(load_ohm: int, compliance_mv: int) -> tuple[int, int]:
+    """SCOPE_PULSE, its current lowered (in 100 uA steps) so the load sees <= 85 % of the
+    stimulator's compliance: a clipped plateau would give a wrong DAC gain."""
+    i_ua = min(SCOPE_PULSE[0], int(0.85 * compliance_mv * 1000 / load_ohm) // 100 * 100)
+    return max(i_ua, 100), SCOPE_PULSE[1]
+
+
 def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600.0) -> float:
     """Pulse channel ch alone at the reference (I, T), open loop, DAC and monitor nominal
     (the caller switched the correction off), until ask(prompt) returns the builder's
@@ -239,6 +246,9 @@ def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600
                 raise SelfTestError(f"ch{ch}: no pulse at {i_ua} uA, {t_us} us: is the device running?")
             # this pulse's (not a report of the sweep still queued): the DAC's step below the command
             if isinstance(rep, Telemetry) and rep.channel == ch and rep.t_us == t_us and 0 < i_ua - rep.i_ua < 5:
+                if rep.stop not in (hp.STOP_NONE,):  # this pulse latched (e.g. at compliance): no plateau to read
+                    raise SelfTestError(f"ch{ch} stopped at the scope's pulse {i_ua} uA x {t_us} us (stop reason "
+                                        f"{rep.stop}): is the load connected?")
                 nominal = rep.i_ua
         prompt = (f"ch{ch} pulses {nominal} uA x {t_us} us on the {load_ohm} ohm load now: the plateau across the "
                   f"load on the scope, in mV (nominal {nominal * load_ohm / 1000:.0f}): ")
@@ -314,7 +324,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
             if scope:
                 for f in fits:
-                    f.dac_gain = scope_dac_gain(d, f.channel, load_ohm, SCOPE_PULSE, ask)
+                    f.dac_gain = scope_dac_gain(d, f.channel, load_ohm, scope_pulse(load_ohm, info.compliance_mv), ask)
             for line in report_lines(fits, load_ohm):
                 say(line)
             worst = max(f.worst_rp_err_before for f in fits)

@@ -185,3 +185,14 @@ def test_selftest_of_one_channel_pulses_only_that_channel(tmp_path):
     assert p.returncode == 0, p.stdout + p.stderr
     assert re.search(r"selftest: \d+ pulses on 1 channel\(s\)", p.stdout + p.stderr), p.stdout + p.stderr
     assert "on 2 channel(s)" not in p.stdout + p.stderr
+
+
+def test_the_scope_pulse_stays_below_compliance_on_a_large_load():
+    """--scope on the largest accepted load: the reference pulse's current is lowered so the load
+    sees <= 85 % of compliance (review: 4500 uA on 25 kohm is 112 V, a clipped plateau)."""
+    from steadytouch import selftest as st
+
+    for load in (1000, 10000, 25000, 100000):
+        i_ua, t_us = st.scope_pulse(load, 100_000)
+        assert i_ua * load / 1000 <= 0.85 * 100_000 and i_ua <= st.SCOPE_PULSE[0] and t_us == st.SCOPE_PULSE[1]
+    assert st.scope_pulse(10000, 100_000) == st.SCOPE_PULSE  # the documented reference on the usual load
