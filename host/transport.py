@@ -424,6 +424,21 @@ def _flag(q, name, default):
     return v
 
 
+def _board_flags(url: str, q) -> tuple[int, str]:
+    """sim:// and emu://'s simulated board: load=OHM (a resistor on every channel; 0: the electrode
+    model) and board=real|ideal."""
+    try:
+        load_ohm = int(_flag(q, "load", "0"))
+    except ValueError:
+        raise TransportError(f"bad device URL {url!r}: load takes a whole number of ohms, e.g. load=10000") from None
+    if load_ohm and not 100 <= load_ohm <= 1_000_000:
+        raise TransportError(f"bad device URL {url!r}: load={load_ohm} ohm out of range [100, 1000000]")
+    board = _flag(q, "board", "real")
+    if board not in ("real", "ideal"):
+        raise TransportError(f"bad device URL {url!r}: board is real (the parts' errors, default) or ideal")
+    return load_ohm, board
+
+
 def open_transport(url: str, hid_module=None) -> Transport:
     """Open the transport a device URL names; TransportError with advice otherwise."""
     u = urlsplit(url)
@@ -445,15 +460,7 @@ def open_transport(url: str, hid_module=None) -> Transport:
             frames = int(_flag(q, "frames", "0")) or None
         except ValueError:
             raise TransportError(f"bad device URL {url!r}: channels, seed and frames take whole numbers") from None
-        try:
-            load_ohm = int(_flag(q, "load", "0"))
-        except ValueError:
-            raise TransportError(f"bad device URL {url!r}: load takes a whole number of ohms, e.g. load=10000") from None
-        if load_ohm and not 100 <= load_ohm <= 1_000_000:
-            raise TransportError(f"bad device URL {url!r}: load={load_ohm} ohm out of range [100, 1000000]")
-        board = _flag(q, "board", "real")
-        if board not in ("real", "ideal"):
-            raise TransportError(f"bad device URL {url!r}: board is real (the parts' errors, default) or ideal")
+        load_ohm, board = _board_flags(url, q)
         realtime = _flag(q, "realtime", "1") not in ("0", "no", "false")
         from .simrun import SimError, scenario_keys
 
@@ -502,15 +509,7 @@ def open_transport(url: str, hid_module=None) -> Transport:
                 check_calibration(*auto)
             except ValueError as e:
                 raise TransportError(f"bad device URL {url!r}: auto: {e}") from None
-        try:
-            load_ohm = int(_flag(q, "load", "0"))
-        except ValueError:
-            raise TransportError(f"bad device URL {url!r}: load takes a whole number of ohms, e.g. load=10000") from None
-        if load_ohm and not 100 <= load_ohm <= 1_000_000:
-            raise TransportError(f"bad device URL {url!r}: load={load_ohm} ohm out of range [100, 1000000]")
-        board = _flag(q, "board", "real")
-        if board not in ("real", "ideal"):
-            raise TransportError(f"bad device URL {url!r}: board is real (the parts' errors, default) or ideal")
+        load_ohm, board = _board_flags(url, q)
         from .simrun import SimError, scenario_keys
 
         try:
