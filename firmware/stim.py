@@ -50,15 +50,16 @@ _T_FLOOR_US = hp.T_FLOOR_US
 _RP_MIN_OHM = sc.RP_MIN_OHM
 _RP_MAX_OHM = sc.RP_MAX_OHM
 _ST_FAULT_MASK = sc.ST_FAULT_MASK
-# A whole telemetry report (bytes 0..O_RATE; the rest stays 0) in one
-# struct.pack_into, allocation-free also on the rp2 (every value is a small int):
-# the same bytes as writing the fields one by one, in one call. Checked at import.
+# The telemetry layout (bytes 0..O_RATE; the rest stays 0) that the viper writer
+# _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
+# compares the two); its offsets, type and flag values are checked at import.
 _TEL_FMT = "<BBBBiiHHiiiiiHHHHHBB"
 if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 and hp.O_SEQ == 4
         and hp.O_TIME == 8 and hp.O_I == 12 and hp.O_T == 14 and hp.O_VP == 16 and hp.O_RP == 20
         and hp.O_ME == 24 and hp.O_MQT == 28 and hp.O_MQL == 32 and hp.O_STATUS == 36 and hp.O_NEXT_I == 38
         and hp.O_NEXT_T == 40 and hp.O_OVERRUNS == 42 and hp.O_LOOP == 44 and hp.O_FLAGS == 46
-        and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48):
+        and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
+        and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 
 
@@ -428,15 +429,16 @@ class Stimulator:
         if n > 0:
             w = len(buf)
             v = _peak_counts(buf, w - n, w)
-        c.vp_raw = v * self.uv_per_count // 1000
-        k = c.vmon_k  # the monitor's gain and offset out (vmon_cal.correct, inlined; monotonic:
-        if k:  # the corrected peak is the peak of the corrected samples)
+        vp = v * self.uv_per_count // 1000
+        c.vp_raw = vp
+        k = c.vmon_k  # the monitor's gain and offset out of the read (vmon_cal.correct, inlined;
+        if k:  # monotonic: a higher read stays higher)
             v = ((v * 16 - c.vmon_o) * k + 65536) >> 17
             if v < 0:
                 v = 0
             elif v > 4095:
                 v = 4095
-        vp = v * self.uv_per_count // 1000
+            vp = v * self.uv_per_count // 1000
         c.vp = vp
         c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0
 
