@@ -61,7 +61,7 @@ VMON_PATH = "/" + vmon_cal.CAL_FILE  # the monitor correction in the board's fla
 
 def load_vmon(n, path=VMON_PATH):
     """The monitor correction stored in the flash, read once at boot: ([(gain_ppm,
-    offset_mv) or None per channel], hp.VMON_NONE / LOADED / BAD). A missing or
+    offset_mv, dac_gain_ppm) or None per channel], hp.VMON_NONE / LOADED / BAD). A missing or
     corrupt file leaves every monitor uncorrected; it never stops the boot."""
     return vmon_cal.boot_load(path, n)
 
