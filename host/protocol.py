@@ -298,8 +298,9 @@ def decode(report: bytes):
     raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")
 
 
-def split_stdio_stream(data: bytes):
-    """The simulated board's stdout: MAGIC0 MAGIC1 + 64 bytes, repeated."""
+def split_stdio_stream(data: bytes, rest: bool = False):
+    """The simulated board's stdout: MAGIC0 MAGIC1 + 64 bytes, repeated. rest=True:
+    (the reports, the bytes after the last whole one) for a stream read in chunks."""
     out, k = [], 0
     while k + 66 <= len(data):
         if data[k] == 0xA5 and data[k + 1] == 0x5A:
@@ -307,7 +308,7 @@ def split_stdio_stream(data: bytes):
             k += 66
         else:
             k += 1
-    return out
+    return (out, data[k:]) if rest else out
 
 
 class CommandError(ValueError):

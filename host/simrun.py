@@ -150,21 +150,6 @@ class Calib:
     y_star_pc: int = 186000
 
 
-def _whole_reports(buf: bytes) -> tuple[list[bytes], bytes]:
-    """The whole framed reports at the start of buf, and what follows the last one."""
-    k, cut = 0, 0
-    out = []
-    while k + 66 <= len(buf):
-        if buf[k] == 0xA5 and buf[k + 1] == 0x5A:
-            out.append(bytes(buf[k + 2 : k + 66]))
-            k += 66
-            cut = k
-        else:
-            k += 1
-            cut = k
-    return out, buf[cut:]
-
-
 def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: int = 1, frames: int | None = None,
                  timeout: float = 3600, progress=None, ideal: bool = False, on_reports=None):
     """All IN reports of one run (virtual clock), decoded. progress(t_s) is called as
@@ -199,7 +184,7 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
                 if reps:  # (not yet a whole report: at the next chunk)
                     last = now
                     if on_reports is not None:  # whole reports since the last call (a report may span chunks)
-                        got, pending = _whole_reports(pending)
+                        got, pending = split_stdio_stream(pending, rest=True)
                         on_reports([decode(r) for r in got])
                     progress(int.from_bytes(reps[-1][8:12], "little") / 1e6)  # the report's time_us
             if now - t_start > timeout:
