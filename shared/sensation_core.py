@@ -24,10 +24,8 @@ try:
     from micropython import const
 except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the array itself
 
-    class micropython:  # noqa: N801 (stands in for the module's decorator)
-        @staticmethod
-        def viper(f):
-            return f
+    class micropython:  # noqa: N801 (stands in for the module's decorators)
+        viper = native = staticmethod(lambda f: f)
 
     def const(x):
         return x
@@ -109,9 +107,9 @@ _K_MQN = const(12)  # _mq_num_pc, _mq_den_ohm, _y_q4 (y* in 1/16 pC), _line_cap_
 _K_MQD = const(13)
 _K_YQ4 = const(14)
 _K_LCAP = const(15)
-_K_N = const(16)
-_RP_LO = RP_MIN_OHM  # update's Rp range as objects: an int of any size compares exactly
-_RP_HI = RP_MAX_OHM
+_K_RP = const(16)  # update's Rp, echoed
+_K_N = const(17)
+_RP_LO = RP_MIN_OHM  # as an object
 
 
 def _check(name, v, lo, hi):
@@ -119,6 +117,7 @@ def _check(name, v, lo, hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
+@micropython.native
 def rp_from_vp(vp_mv, i_ua):
     """Peak resistance in ohm from peak voltage (mV) and current (uA), rounded.
     Returns RP_INVALID for i_ua <= 0 or vp_mv < 0 (update() faults on it) and
@@ -179,8 +178,7 @@ def _from_q(c, qf: int) -> int:
         st = ST_Q_MAX
     # Eq. 4: I = 16 mE / qf (rounded), T = Q^2 / mE: with v = Q / i0 (= sqrt(T * t0)) in
     # Q.16, T = v^2 / t0 (rounded); _T_SAT if v >= 2**13 (T >= 2**26 / t0 > T_LIMIT_US)
-    me_lo = k[_K_ME_LO]
-    i = int(div2((k[_K_ME_HI] << 4) + (me_lo >> 11), (me_lo << 4) & _M15, qf, 1))
+    i = int(div2((k[_K_ME_HI] << 4) + (k[_K_ME_LO] >> 11), (k[_K_ME_LO] << 4) & _M15, qf, 1))
     i0 = k[_K_I0]
     t0 = k[_K_T0]
     q1 = qf // i0
@@ -408,14 +406,17 @@ class Controller:
     def update(self, rp_ohm) -> int:
         """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status. (viper: the
         law's constants from self._k; Rp's range is checked on the object: every int.)"""
-        k = ptr32(self._k)
-        if not k[_K_I0]:
+        ka = self._k
+        k = ptr32(ka)
+        if not k[_K_I0]:  # (below: the fault rules)
             return int(self.stop(ST_UNCALIBRATED))
-        self.rp_ohm = rp_ohm  # (below: the fault rules)
-        if rp_ohm < _RP_LO or rp_ohm > _RP_HI:  # (Rp < RP_MIN_OHM also covers Rp <= x*, as x* <= 0)
+        self.rp_ohm = rp_ohm
+        rp = int(rp_ohm)  # a machine word: an int beyond it is caught by the echo through _k
+        if rp >= RP_MIN_OHM and rp <= RP_MAX_OHM:  # (Rp < RP_MIN_OHM also covers Rp <= x*, as x* <= 0)
+            k[_K_RP] = rp
+        if rp < RP_MIN_OHM or rp > RP_MAX_OHM or ka[_K_RP] != rp_ohm:
             self.mq_last_fc_per_ohm = 0
             return int(self.stop(ST_RP_LOW if rp_ohm < _RP_LO else ST_RP_HIGH))
-        rp = int(rp_ohm)
         i_k = int(self.i_ua)  # the pulse this Rp was measured on
         t_k = int(self.t_us)
         q_k = i_k * t_k
@@ -443,8 +444,7 @@ class Controller:
         b.clean = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
-    # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions, also methods (a
-    # method call on this object, whose attribute map is large, costs ~16 us more on the chip)
+    # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions, also methods
     _line = _line
     _from_q = _from_q
     _fixed_current = _fixed_current
