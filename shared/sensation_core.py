@@ -6,9 +6,8 @@ then, every pulse, the charge on the Q-Rp line Q = mQ (Rp - x*) + y* (Eq. 3,
 _line) and the pulse I = mE / Q, T = Q^2 / mE (Eq. 4, _from_q, with the
 bounds). Faults and bounds: Controller.update and _from_q; the baseline modes:
 _fixed_current (the three are functions of the Controller, also its methods).
-MODE_FAST's step is in
-fast_step.py, its skin model in skin_model.py, the integer arithmetic in
-fixmath.py. docs/controller.md maps every rule to its function.
+MODE_FAST's step is in fast_step.py, its skin model in skin_model.py, the integer
+arithmetic in fixmath.py. docs/controller.md maps every rule to its function.
 
 Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every
 intermediate value stays below 2**30 in magnitude, so a 32-bit MicroPython port
@@ -18,20 +17,21 @@ nothing. Formats and error bounds: docs/fixed-point.md.
 Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
 """
 
+from array import array
+
 try:
     import micropython
     from micropython import const
-except ImportError:  # CPython: the decorator does nothing
+except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the array itself
 
-    class micropython:  # noqa: N801 (stands in for the module's decorator)
-        @staticmethod
-        def native(f):
-            return f
-
-        viper = native
+    class micropython:  # noqa: N801 (stands in for the module's decorators)
+        viper = native = staticmethod(lambda f: f)
 
     def const(x):
         return x
+
+    def ptr32(a):
+        return a
 
 
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
@@ -87,34 +87,41 @@ _M15 = const(0x7FFF)
 _T_SAT = const(0x8000)  # "T >= 2**15 us": beyond every t_max
 _MQ_CAP = const(0x1FFFFFFF)
 
+# the law's constants and the limits as words of one array, Controller._k (set_limits,
+# calibrate, set_mode write it and the attributes of the same name): on the chip an
+# attribute lookup costs ~2 us, a word read by viper nothing. Never negative (a 64-bit
+# viper reads a ptr32 word unsigned): x* is kept as -x*.
+_K_MODE = const(0)
+_K_IMIN = const(1)  # i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc
+_K_IMAX = const(2)
+_K_TMIN = const(3)
+_K_TMAX = const(4)
+_K_QMAX = const(5)
+_K_I0 = const(6)  # i0_ua (0: not calibrated), t0_us, rp0_ohm, -x_star_ohm
+_K_T0 = const(7)
+_K_RP0 = const(8)
+_K_XSN = const(9)
+_K_ME_HI = const(10)  # Eq. 1: mE = _k[_K_ME_HI] * 2**15 + _k[_K_ME_LO] (uA^2 us)
+_K_ME_LO = const(11)
+_K_MQN = const(12)  # _mq_num_pc, _mq_den_ohm, _y_q4 (y* in 1/16 pC), _line_cap_q4
+_K_MQD = const(13)
+_K_YQ4 = const(14)
+_K_LCAP = const(15)
+_K_RP = const(16)  # update's Rp, echoed
+_K_N = const(17)
+_RP_LO = RP_MIN_OHM  # as an object
+
 
 def _check(name, v, lo, hi):
     if not (lo <= v <= hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
 
 
-@micropython.viper
-def _t_from_qf(qf: int, i0: int, t0: int) -> int:
-    """Eq. 4's T = Q^2 / mE, rounded, with Q = qf / 16 pC, mE = i0^2 t0; _T_SAT if huge.
-
-    v = Q / i0 (= sqrt(T * t0)) in Q.16; T = v^2 / t0.
-    """
-    q1 = qf // i0
-    if q1 >= 0x20000:  # v >= 2**13 -> T >= 2**26 / t0 > T_LIMIT_US
-        return _T_SAT
-    v = (q1 << 12) + ((qf - q1 * i0) << 12) // i0  # < 2**29
-    h = v >> 15
-    lo = v & _M15
-    sq = ((h * h) << 1) + ((h * lo + ((lo * lo) >> 16)) >> 13)  # v^2 / 2**29
-    return (sq + (t0 << 2)) // (t0 << 3)
-
-
+@micropython.native
 def rp_from_vp(vp_mv, i_ua):
     """Peak resistance in ohm from peak voltage (mV) and current (uA), rounded.
-
     Returns RP_INVALID for i_ua <= 0 or vp_mv < 0 (update() faults on it) and
-    RP_OVER for vp_mv > VP_LIMIT_MV (update() reads it as electrode off).
-    """
+    RP_OVER for vp_mv > VP_LIMIT_MV (update() reads it as electrode off)."""
     if i_ua <= 0 or vp_mv < 0:
         return RP_INVALID
     if vp_mv > VP_LIMIT_MV:
@@ -122,34 +129,37 @@ def rp_from_vp(vp_mv, i_ua):
     return (vp_mv * 1000 + (i_ua >> 1)) // i_ua
 
 
-@micropython.native
-def _line(c, rp_ohm):
+@micropython.viper
+def _line(c, rp_ohm: int) -> int:
     """Eq. 3: Q = mQ (Rp - x*) + y*, in 1/16 pC, saturating above q_max (Rp valid)."""
-    return c._y_q4 + muldiv(c._mq_num_pc, rp_ohm - c.x_star_ohm, c._mq_den_ohm, 4, c._line_cap_q4)
+    k = ptr32(c._k)
+    return k[_K_YQ4] + int(muldiv(k[_K_MQN], rp_ohm + k[_K_XSN], k[_K_MQD], 4, k[_K_LCAP]))
 
 
-def _fixed_current(c, mode, rp_ohm):
-    """The baseline laws: I = I0; T from the mode's law, then the bounds."""
-    t0 = c.t0_us
+@micropython.viper
+def _fixed_current(c, mode: int, rp_ohm: int) -> int:
+    """The baseline laws: I = I0; T from the mode's law, then the bounds (viper, c._k)."""
+    k = ptr32(c._k)
+    t0 = k[_K_T0]
     t = t0  # MODE_OPEN_LOOP, MODE_CONSTANT_CHARGE (I0 * T0 held)
     if mode == MODE_CONSTANT_ENERGY:  # Rp I0^2 T = Rp0 I0^2 T0
-        t = muldiv(t0, c.rp0_ohm, rp_ohm, 1, _MQ_CAP)
+        t = int(muldiv(t0, k[_K_RP0], rp_ohm, 1, _MQ_CAP))
         t = (t + 1) >> 1  # rounded
     elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
-        dr = rp_ohm - c.rp0_ohm
-        x = muldiv(c._mq_num_pc, dr if dr >= 0 else -dr, c._mq_den_ohm, 1, _MQ_CAP)  # 2 mQ |dRp| in pC
-        x = (x + (c.i0_ua >> 1)) // c.i0_ua
+        dr = rp_ohm - k[_K_RP0]
+        x = int(muldiv(k[_K_MQN], dr if dr >= 0 else -dr, k[_K_MQD], 1, _MQ_CAP))  # 2 mQ |dRp| in pC
+        x = (x + (k[_K_I0] >> 1)) // k[_K_I0]
         t = t0 + x if dr >= 0 else t0 - x
-    i = c.i0_ua
-    st = ST_OK
-    if t > c.t_max_us:
-        t = c.t_max_us
+    i = k[_K_I0]
+    st = ST_OK  # then the bounds
+    if t > k[_K_TMAX]:
+        t = k[_K_TMAX]
         st = ST_T_MAX
-    elif t < c.t_min_us:
-        t = c.t_min_us
+    elif t < k[_K_TMIN]:
+        t = k[_K_TMIN]
         st = ST_T_MIN
-    if i * t > c.q_max_pc:
-        t = c.q_max_pc // i
+    if i * t > k[_K_QMAX]:
+        t = k[_K_QMAX] // i
         st |= ST_Q_MAX
     c.i_ua = i
     c.t_us = t
@@ -160,18 +170,27 @@ def _fixed_current(c, mode, rp_ohm):
 @micropython.viper
 def _from_q(c, qf: int) -> int:
     """Eq. 4 and every bound, from a charge estimate in 1/16 pC (> 0). (viper: machine
-    integers, every value below 2**30; a Python call is made only for div2,
-    _t_from_qf, isqrt_round and div_small.)"""
+    integers, every value below 2**30; the law from c._k; calls: div2, at the floor isqrt.)"""
+    k = ptr32(c._k)
     st = ST_OK
-    q_max_q4 = int(c._q_max_q4)
-    if qf > q_max_q4:
-        qf = q_max_q4
+    if qf > k[_K_QMAX] << 4:
+        qf = k[_K_QMAX] << 4
         st = ST_Q_MAX
-    # Eq. 4: I = mE / Q, T = Q^2 / mE
-    i = int(div2(c._me16_hi, c._me16_lo, qf, 1))
-    t = int(_t_from_qf(qf, c.i0_ua, c.t0_us))
-    t_min = int(c.t_min_us)
-    t_max = int(c.t_max_us)
+    # Eq. 4: I = 16 mE / qf (rounded), T = Q^2 / mE: with v = Q / i0 (= sqrt(T * t0)) in
+    # Q.16, T = v^2 / t0 (rounded); _T_SAT if v >= 2**13 (T >= 2**26 / t0 > T_LIMIT_US)
+    i = int(div2((k[_K_ME_HI] << 4) + (k[_K_ME_LO] >> 11), (k[_K_ME_LO] << 4) & _M15, qf, 1))
+    i0 = k[_K_I0]
+    t0 = k[_K_T0]
+    q1 = qf // i0
+    t = _T_SAT
+    if q1 < 0x20000:
+        v = (q1 << 12) + ((qf - q1 * i0) << 12) // i0  # < 2**29
+        h = v >> 15
+        lo = v & _M15
+        sq = ((h * h) << 1) + ((h * lo + ((lo * lo) >> 16)) >> 13)  # v^2 / 2**29
+        t = (sq + (t0 << 2)) // (t0 << 3)
+    t_min = k[_K_TMIN]
+    t_max = k[_K_TMAX]
     # duration bounds. Ceiling (ours: the paper has none): keep the charge on
     # the Q-Rp line at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so
     # I*T is within I/2 pC of Q (mE then above its value).
@@ -181,7 +200,7 @@ def _from_q(c, qf: int) -> int:
         if int(c.i_ua) == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours
             i += 1  # (Rp follows I, so the line's charge for I lies between the two)
         t = t_max
-        if i <= int(c.i_max_ua):  # (above it the current ceiling below holds I at i_max)
+        if i <= k[_K_IMAX]:  # (above it the current ceiling below holds I at i_max)
             t = (qf + (i << 3)) // (i << 4)
             if t < t_min:  # T pinned (t_min near t_max): the current nearest Q / t_min (never above I)
                 t = t_min
@@ -189,15 +208,15 @@ def _from_q(c, qf: int) -> int:
         st |= ST_T_MAX
     elif t < t_min:
         t = t_min
-        i = int(isqrt_round(div_small(c._me_hi, c._me_lo, t_min)))
+        i = int(isqrt_round(div_small(k[_K_ME_HI], k[_K_ME_LO], t_min)))
         st |= ST_T_MIN
     # current bounds: floor holds I and solves T; ceiling is safety (no mE)
-    i_min = int(c.i_min_ua)
-    i_max = int(c.i_max_ua)
+    i_min = k[_K_IMIN]
+    i_max = k[_K_IMAX]
     if i < i_min:
         i = i_min
         st |= ST_I_MIN
-        t = int(div2(c._me_hi, c._me_lo, i * i, 1))
+        t = int(div2(k[_K_ME_HI], k[_K_ME_LO], i * i, 1))
         if t > t_max:
             t = t_max
             st |= ST_T_MAX
@@ -208,14 +227,14 @@ def _from_q(c, qf: int) -> int:
         i = i_max
         st |= ST_I_MAX
     # charge ceiling (safety): shorten the pulse, then lower the current
-    q_max = int(c.q_max_pc)
+    q_max = k[_K_QMAX]
     if i * t > q_max:
         st |= ST_Q_MAX
         t = q_max // i
         if t < t_min:
             t = t_min
             i = q_max // t_min
-    elif st == ST_OK and int(c.mode) == MODE_FAST:
+    elif st == ST_OK and k[_K_MODE] == MODE_FAST:
         # the integer pulse nearest the charge: I = round(Q / T), so I*T is
         # within T/2 pC of Q (mE then within 1/(2T) of its value)
         i2 = (qf + (t << 3)) // (t << 4)
@@ -238,8 +257,9 @@ class Controller:
     def __init__(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         self.skin = SkinModel(self)  # MODE_FAST's skin model (set_skin), built once
         self.before = Pulse()  # MODE_FAST: the pulse measured before the one just measured
+        self._k = array("i", bytes(4 * _K_N))  # the law and the limits as the viper code reads them
         self.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
-        self.mode = MODE_AKHTAR
+        self._k[_K_MODE] = self.mode = MODE_AKHTAR
         self.rp_ohm = 0  # last Rp given to update()
         self.me_ua2ms = 0  # mE in uA^2*ms (= uA^2*us / 1000), floored
         self.mq_target_fc_per_ohm = 0  # target mQ in fC/ohm (= 1e-3 pC/ohm)
@@ -249,10 +269,6 @@ class Controller:
         self.rp0_ohm = 0
         self.x_star_ohm = 0
         self.y_star_pc = 0
-        self._me_hi = 0  # Eq. 1: mE = _me_hi * 2**15 + _me_lo  (uA^2 us)
-        self._me_lo = 0
-        self._me16_hi = 0  # 16 mE = _me16_hi * 2**15 + _me16_lo
-        self._me16_lo = 0
         self._mq_num_pc = 0  # Eq. 2: mQ = _mq_num_pc / _mq_den_ohm = (Q0 - y*) / (Rp0 - x*)
         self._mq_den_ohm = 1
         self._y_q4 = 0  # y* in 1/16 pC
@@ -265,6 +281,9 @@ class Controller:
         self.skin_rs_ohm = 0  # the skin model as set (set_skin; 0 = none)
         self.skin_beta_q16 = 0
         self.skin_cp_pf = 0
+        # the frame's two calls, bound once (on the chip a method is found after a miss in this map: ~15 us)
+        self.update = self.update
+        self.delivered = self.delivered
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -274,11 +293,13 @@ class Controller:
         _check("t_max_us", t_max_us, 1, T_LIMIT_US)
         _check("t_min_us", t_min_us, 1, t_max_us)
         _check("q_max_pc", q_max_pc, i_min_ua * t_min_us, Q_LIMIT_PC)
-        self.i_min_ua = i_min_ua
-        self.i_max_ua = i_max_ua
-        self.t_min_us = t_min_us
-        self.t_max_us = t_max_us
-        self.q_max_pc = q_max_pc
+        k = self._k
+        k[_K_I0] = 0  # not calibrated
+        k[_K_IMIN] = self.i_min_ua = i_min_ua
+        k[_K_IMAX] = self.i_max_ua = i_max_ua
+        k[_K_TMIN] = self.t_min_us = t_min_us
+        k[_K_TMAX] = self.t_max_us = t_max_us
+        k[_K_QMAX] = self.q_max_pc = q_max_pc
         self.skin.limits(i_min_ua, i_max_ua, t_max_us, q_max_pc)
         self.calibrated = False
         self.i_ua = 0
@@ -300,12 +321,14 @@ class Controller:
         _check("y_star_pc", y_star_pc, 0, q0 - 1)
         self._set_me(i0_ua, t0_us)
         self._set_mq(q0, rp0_ohm, x_star_ohm, y_star_pc)
-        self._y_q4 = y_star_pc << 4
+        k = self._k
+        k[_K_YQ4] = self._y_q4 = y_star_pc << 4
         self._q_max_q4 = self.q_max_pc << 4
-        self._line_cap_q4 = (self.q_max_pc - y_star_pc) << 4
-        self.i0_ua = i0_ua
-        self.t0_us = t0_us
-        self.rp0_ohm = rp0_ohm
+        k[_K_LCAP] = self._line_cap_q4 = (self.q_max_pc - y_star_pc) << 4
+        k[_K_I0] = self.i0_ua = i0_ua
+        k[_K_T0] = self.t0_us = t0_us
+        k[_K_RP0] = self.rp0_ohm = rp0_ohm
+        k[_K_XSN] = -x_star_ohm
         self.x_star_ohm = x_star_ohm
         self.y_star_pc = y_star_pc
         self.skin.law(self)
@@ -318,21 +341,20 @@ class Controller:
         self.calibrated = True
 
     def _set_me(self, i0_ua, t0_us):
-        """Eq. 1: mE = I0^2 T0 (uA^2 us), in two 15-bit limbs (it passes 2**30), and 16 mE."""
+        """Eq. 1: mE = I0^2 T0 (uA^2 us), in two 15-bit limbs (it passes 2**30)."""
         i2 = i0_ua * i0_ua
         p = (i2 & _M15) * t0_us
         eh = (i2 >> 15) * t0_us + (p >> 15)
         el = p & _M15
-        self._me_hi = eh
-        self._me_lo = el
-        self._me16_hi = (eh << 4) + (el >> 11)
-        self._me16_lo = (el << 4) & _M15
+        k = self._k
+        k[_K_ME_HI] = eh
+        k[_K_ME_LO] = el
         self.me_ua2ms = div_small(eh, el, 1000)
 
     def _set_mq(self, q0_pc, rp0_ohm, x_star_ohm, y_star_pc):
         """Eq. 2: mQ = (Q0 - y*) / (Rp0 - x*), kept as numerator (pC) and denominator (ohm)."""
-        self._mq_num_pc = q0_pc - y_star_pc
-        self._mq_den_ohm = rp0_ohm - x_star_ohm
+        self._k[_K_MQN] = self._mq_num_pc = q0_pc - y_star_pc
+        self._k[_K_MQD] = self._mq_den_ohm = rp0_ohm - x_star_ohm
         self.mq_target_fc_per_ohm = muldiv(self._mq_num_pc, 1000, self._mq_den_ohm, 0, _MQ_CAP)
 
     def set_mode(self, mode):
@@ -341,7 +363,7 @@ class Controller:
             raise ValueError("mode=%d out of range [%d, %d]" % (mode, MODE_OPEN_LOOP, MODE_FAST))
         if mode != self.mode:
             self._forget()
-        self.mode = mode
+        self._k[_K_MODE] = self.mode = mode
 
     def set_skin(self, rs_ohm, beta_q16, cp_pf):
         """MODE_FAST's electrode model (skin_model.py): series resistance Rs (ohm),
@@ -357,6 +379,7 @@ class Controller:
         self.skin_beta_q16 = beta_q16
         self.skin_cp_pf = cp_pf
 
+    @micropython.viper
     def delivered(self, i_ua, t_us):
         """Tell the controller the pulse actually delivered, when it differs from
         its own last output (the firmware's supervisor may hold a proposal);
@@ -379,40 +402,40 @@ class Controller:
         self.drift_ohm = 0
         self.skin.jumped = 0
 
-    @micropython.native
-    def update(self, rp_ohm):
-        """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status."""
-        if not self.calibrated:
-            return self.stop(ST_UNCALIBRATED)
+    @micropython.viper
+    def update(self, rp_ohm) -> int:
+        """Rp measured on the last pulse -> self.i_ua, self.t_us; returns status. (viper: the
+        law's constants from self._k; Rp's range is checked on the object: every int.)"""
+        ka = self._k
+        k = ptr32(ka)
+        if not k[_K_I0]:  # (below: the fault rules)
+            return int(self.stop(ST_UNCALIBRATED))
         self.rp_ohm = rp_ohm
-        if rp_ohm < RP_MIN_OHM:  # also covers Rp <= x*, as x* <= 0
+        rp = int(rp_ohm)  # a machine word: an int beyond it is caught by the echo through _k
+        if rp >= RP_MIN_OHM and rp <= RP_MAX_OHM:  # (Rp < RP_MIN_OHM also covers Rp <= x*, as x* <= 0)
+            k[_K_RP] = rp
+        if rp < RP_MIN_OHM or rp > RP_MAX_OHM or ka[_K_RP] != rp_ohm:
             self.mq_last_fc_per_ohm = 0
-            return self.stop(ST_RP_LOW)
-        if rp_ohm > RP_MAX_OHM:
-            self.mq_last_fc_per_ohm = 0
-            return self.stop(ST_RP_HIGH)
-        i_k = self.i_ua  # the pulse this Rp was measured on
-        t_k = self.t_us
+            return int(self.stop(ST_RP_LOW if rp_ohm < _RP_LO else ST_RP_HIGH))
+        i_k = int(self.i_ua)  # the pulse this Rp was measured on
+        t_k = int(self.t_us)
         q_k = i_k * t_k
-        # its mQ (telemetry)
+        mq = 0  # its mQ (telemetry)
         if i_k > 0:
-            n = q_k - self.y_star_pc
-            d = rp_ohm - self.x_star_ohm
-            if n >= 0:
-                self.mq_last_fc_per_ohm = muldiv(n, 1000, d, 0, _MQ_CAP)
-            else:
-                self.mq_last_fc_per_ohm = -muldiv(-n, 1000, d, 0, _MQ_CAP)
-        else:
-            self.mq_last_fc_per_ohm = 0
-        mode = self.mode
+            n = q_k - (k[_K_YQ4] >> 4)  # Q - y*
+            mq = int(muldiv(n if n >= 0 else 0 - n, 1000, rp + k[_K_XSN], 0, _MQ_CAP))
+            if n < 0:
+                mq = 0 - mq
+        self.mq_last_fc_per_ohm = mq
+        mode = k[_K_MODE]
         if mode < MODE_AKHTAR:
-            return _fixed_current(self, mode, rp_ohm)
-        qf = _line(self, rp_ohm)
+            return int(_fixed_current(self, mode, rp))
+        qf = int(_line(self, rp))
         if qf <= 0:
-            return self.stop(ST_Q_NONPOS)
+            return int(self.stop(ST_Q_NONPOS))
         if mode != MODE_FAST:
-            return _from_q(self, qf)
-        st = fast_pulse(self, qf, q_k, rp_ohm, _line, _from_q)
+            return int(_from_q(self, qf))
+        st = int(fast_pulse(self, qf, q_k, rp_ohm, _line, _from_q))
         b = self.before  # for the next secant, drift and two-pulse fit
         b.i_ua = i_k
         b.t_us = t_k
@@ -421,9 +444,7 @@ class Controller:
         b.clean = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
-    # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions of the Controller
-    # (update and fast_step call them as functions: a method call on this object, whose
-    # attribute map is large, costs ~16 us more on the chip)
+    # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions, also methods
     _line = _line
     _from_q = _from_q
     _fixed_current = _fixed_current

@@ -7,12 +7,16 @@ tests/ import from sensation_core is still there."""
 
 import ast
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 import fast_step
 import fixmath
 import sensation_core as sc
 import skin_model
 
-from conftest import ROOT, SHARED
+from conftest import ROOT, SHARED, run_mp
+from strategies import scenario
 
 COPIES = {
     fast_step: {"_ST_OK": sc.ST_OK, "_ST_T_MAX": sc.ST_T_MAX, "_RP_MIN_OHM": sc.RP_MIN_OHM,
@@ -74,3 +78,99 @@ def test_the_core_reads_on_a_few_screens():
     src = (SHARED / "sensation_core.py").read_text()
     for moved in ("_rp_model", "_root", "_LOG_TAB", "_EXP_TAB", "_drift", "_model_pulse"):
         assert moved not in src, moved
+
+
+# ---- the law's constants as update reads them (Controller._k, viper) ----
+
+def words(c):
+    """What Controller._k must hold, from the attributes of the same meaning."""
+    me = c.i0_ua * c.i0_ua * c.t0_us
+    return {sc._K_MODE: c.mode, sc._K_IMIN: c.i_min_ua, sc._K_IMAX: c.i_max_ua, sc._K_TMIN: c.t_min_us,
+            sc._K_TMAX: c.t_max_us, sc._K_QMAX: c.q_max_pc, sc._K_I0: c.i0_ua if c.calibrated else 0,
+            sc._K_T0: c.t0_us, sc._K_RP0: c.rp0_ohm, sc._K_XSN: -c.x_star_ohm, sc._K_ME_HI: me >> 15,
+            sc._K_ME_LO: me & 0x7FFF, sc._K_MQN: c._mq_num_pc, sc._K_MQD: c._mq_den_ohm, sc._K_YQ4: c._y_q4,
+            sc._K_LCAP: c._line_cap_q4}
+
+
+@settings(max_examples=300)
+@given(scenario(max_updates=4), scenario(max_updates=1), st.sampled_from(sc.MODES))
+def test_the_array_update_reads_agrees_with_the_attributes(case, other, mode):
+    (lim, cal, rps), (lim2, _, _) = case, other
+    c = sc.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
+    assert all(c._k[w] == v for w, v in words(c).items() if w in (sc._K_MODE, sc._K_IMIN, sc._K_QMAX, sc._K_I0))
+    c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    c.set_mode(mode)
+    assert {w: c._k[w] for w in words(c)} == words(c)
+    assert min(c._k) >= 0  # a 64-bit viper reads a ptr32 word unsigned
+    for rp in rps:
+        c.update(rp)
+    assert {w: c._k[w] for w in words(c)} == words(c)
+    c.set_limits(lim2.i_min_ua, lim2.i_max_ua, lim2.t_min_us, lim2.t_max_us, lim2.q_max_pc)  # drops the calibration
+    assert c._k[sc._K_I0] == 0 and c.update(20000) == sc.ST_UNCALIBRATED
+    assert c._k[sc._K_IMIN] == lim2.i_min_ua and c._k[sc._K_QMAX] == lim2.q_max_pc
+
+
+BEYOND = (2**64 + 1000, -(2**64) + 1000, 2**32 + 1000, -(2**32) + 1000, 2**31 + 20000, 2**30 + 20000,
+          2**63 + 20000, 2**40, -(2**40), 2**30 - 1, -(2**30), 499, 500, 200000, 200001, 0, -1)
+
+ODD_RP_SCRIPT = """
+import sensation_core as sc
+c = sc.Controller(500, 10000, 100, 4000, 30000000)
+c.calibrate(1000, 1000, 20000, -1670, 186000)
+out = []
+for rp in RPS:
+    out.append(c.update(rp))
+    out.append(c.update(20000))  # (a fault stops the pulse: back to a valid Rp)
+print(out)
+"""
+
+
+def test_update_faults_on_every_int_beyond_the_range_as_cpython(micropython, core_mpy_dir, tmp_path):
+    """update is viper (machine words): an Rp beyond a word, truncated into [500, 200000] Ohm,
+    is still a fault (the echo through _k), on MicroPython as on CPython."""
+    script = tmp_path / "odd_rp.py"
+    script.write_text(ODD_RP_SCRIPT.replace("RPS", repr(BEYOND)))
+    g = {}
+    exec(compile(ODD_RP_SCRIPT.replace("RPS", repr(BEYOND)).replace("print(out)", ""), "odd", "exec"), g)
+    want = g["out"]
+    assert [want[2 * k] for k, rp in enumerate(BEYOND) if not 500 <= rp <= 200000] == \
+        [sc.ST_RP_LOW if rp < 500 else sc.ST_RP_HIGH for rp in BEYOND if not 500 <= rp <= 200000]
+    r = run_mp(micropython, script, [core_mpy_dir])
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(want)
+
+
+FRAME_LOCK_SCRIPT = """
+import micropython, sensation_core as sc
+c = sc.Controller(500, 20000, 50, 2000, 20000000)
+c.calibrate(1000, 1000, 30000, -1670, 186000)
+assert "update" in c.__dict__ and "delivered" in c.__dict__  # bound once, on the instance
+
+
+def frame(n):
+    k = 0
+    while k < n:
+        c.set_mode(sc.MODES[k % 6])
+        c.delivered(c.i_ua, c.t_us)  # as stim's _control calls them
+        c.update(10000 + (k * 7919) % 90000)
+        k += 1
+    return k
+
+
+n, err = 0, None  # (globals made before the lock)
+micropython.heap_lock()
+try:
+    n = frame(600)
+except MemoryError as e:
+    err = e
+micropython.heap_unlock()
+print("frames", n, "error", err)
+"""
+
+
+def test_delivered_and_update_as_the_frame_calls_them_allocate_nothing(micropython, core_mpy_dir, tmp_path):
+    script = tmp_path / "frame_lock.py"
+    script.write_text(FRAME_LOCK_SCRIPT)
+    r = run_mp(micropython, script, [core_mpy_dir])
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "frames 600 error None", r.stdout + r.stderr
