@@ -51,6 +51,7 @@ _T_FLOOR_US = hp.T_FLOOR_US
 _RP_MIN_OHM = sc.RP_MIN_OHM
 _RP_MAX_OHM = sc.RP_MAX_OHM
 _ST_FAULT_MASK = sc.ST_FAULT_MASK
+_rp_from_vp = sc.rp_from_vp  # one global load in _measure
 # Literals for the viper methods (const() folds them; checked against the modules below)
 _C_T_FLOOR_US = const(20)
 _C_FAULT_MASK = const(0x1E0)
@@ -150,7 +151,9 @@ _HID = const(18)  # hard limits for the current the board reports it delivers (_
 _HQD = const(19)
 _VK = const(20)  # the monitor correction as vmon_cal.terms() for _measure (0: none)
 _VO = const(21)
-_NV = const(22)
+_W = const(22)  # samples in the capture window (len(c.adc))
+_UV = const(23)  # uV per ADC count (the Stimulator's uv_per_count)
+_NV = const(24)
 
 
 def _word(k):
@@ -260,6 +263,8 @@ class Stimulator:
         self.chans = [Channel(k, lim) for k in range(n)]
         for c in self.chans:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
+            c.v[_W] = len(c.adc)
+            c.v[_UV] = self.uv_per_count
         # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
         vm = getattr(board, "vmon_cal", None)
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
@@ -375,10 +380,10 @@ class Stimulator:
         k = 0
         while k < n:
             c = chans[k]
-            self._pulse(k, c)  # on the rp2 the gate is open when this returns
+            ns = self._pulse(k, c)  # on the rp2 the gate is open when this returns
             if prev is not None:
                 self._channel(prev)  # meanwhile: the previous channel
-            if overlap and c.n_samples:
+            if overlap and ns:
                 self._wait()  # until channel k's capture is complete
             prev = c
             k += 1
@@ -398,9 +403,10 @@ class Stimulator:
         self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     @micropython.viper
-    def _pulse(self, k: int, c):
+    def _pulse(self, k: int, c) -> int:
         """Channel k's pulse for this frame, after the last check right before the
-        gate opens: the hard limits, independent of the controller. Viper, because
+        gate opens: the hard limits, independent of the controller. Returns the
+        samples its capture will hold (c.n_samples; 0: no pulse). Viper, because
         speed forces it (here and in the channel's work below: the channel's numbers
         are words of c.v, ~1.5 us less each than an attribute on the chip): each
         product is formed only once its factors passed their bounds (hard limits
@@ -414,15 +420,15 @@ class Stimulator:
         v[_DI] = 0
         v[_DT] = 0
         if v[_ARMED] == 0 or i <= 0:
-            return
+            return 0
         if i > int(self.hard_i) or t > int(self.hard_t) or t < _C_T_FLOOR_US or i * t > int(self.hard_q):
             self._latch(c, _C_STOP_LIMIT)
-            return
+            return 0
         if v[_AI] != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
-            return
+            return 0
         if ad > v[_HID] or ad * t > v[_HQD]:  # a board that would deliver beyond the hard limits
             self._latch(c, _C_STOP_LIMIT)
-            return
+            return 0
         v[_DI] = ad
         v[_DT] = t
         if self._overlap:
@@ -431,6 +437,7 @@ class Stimulator:
             self._leave()
             v[_NS] = int(self.board.fire(k, t))
             self._enter()
+        return v[_NS]
 
     @micropython.native
     def _channel(self, c):
@@ -504,10 +511,9 @@ class Stimulator:
         n = v[_NS]
         x = 0
         if n > 0:
-            buf = c.adc
-            w = int(len(buf))
-            x = int(_peak_counts(buf, w - n, w))
-        uv = int(self.uv_per_count)
+            w = v[_W]
+            x = int(_peak_counts(c.adc, w - n, w))
+        uv = v[_UV]
         vp = x * uv // 1000
         v[_VPR] = vp
         k = v[_VK]  # the monitor's gain and offset out of the read (vmon_cal.correct, inlined;
@@ -521,7 +527,7 @@ class Stimulator:
         v[_VP] = vp
         di = v[_DI]
         if di:
-            v[_RP] = int(sc.rp_from_vp(vp, di))
+            v[_RP] = int(_rp_from_vp(vp, di))
         else:
             v[_RP] = 0
 
