@@ -60,8 +60,7 @@ _PIO0_TXF0 = const(0x50200010)  # PIO0's TX FIFO of state machine 0; sm k at + 4
 _DMA_BASE = const(0x50000000)  # DMA channel c's READ_ADDR, WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at + 0x40c
 _DMA_BUSY = const(0x1000000)  # CTRL.BUSY
 _SPI0_BASE = const(0x4003C000)  # SPI1 at + 0x4000; SSPDR at word 2, SSPSR at word 3
-_SIO_OUT_SET = const(0xD0000014)
-_SIO_OUT_CLR = const(0xD0000018)
+_SIO_BASE = const(0xD0000000)
 # Board.p: the numbers start(), wait() and set_amplitude() read, one int array (ptr32 in viper)
 _P_DMA = const(0)  # the DMA channel's register base
 _P_CTRL = const(1)  # its CTRL_TRIG word for a capture
@@ -72,7 +71,12 @@ _P_SEL = const(8)  # + ch: its CS.AINSEL << 12
 _P_SPI = const(12)  # the DAC's SPI register base
 _P_FULL = const(13)  # + ch: the DAC output's current at code 4096 (with its gain)
 _P_CS = const(17)  # + ch: 1 << its chip-select pin
-_P_LEN = const(21)
+_P_ADC = const(21)  # the peripherals' addresses (as words here: an address >= 2**30 written as a
+_P_TMR = const(22)  # const() is a long int the viper code would convert at every use, ~1.2 us each)
+_P_TXF = const(23)
+_P_SIO = const(24)  # SIO base: GPIO_OUT_SET at word 5, GPIO_OUT_CLR at word 6
+_P_NMAX = const(25)  # the capture window (samples, a power of 2)
+_P_LEN = const(26)
 if hp.T_FLOOR_US != _T_FLOOR_US:
     raise ImportError("board_rp2: _T_FLOOR_US differs from hid_protocol.T_FLOOR_US")
 # Instructions executed directly by stop(), encoded once at import (nothing per call)
@@ -165,6 +169,8 @@ class Board:
             raise ValueError("board_rp2: ADC_SAMPLE_US must be %d us, N_CHANNELS at most 4" % _SAMPLE_US)
         p = self.p = array("i", [0] * _P_LEN)  # start(), wait(), set_amplitude() (viper) read these
         self.dac = dac(cfg, n)
+        self.codes = self.dac.codes = array("i", self.dac.codes)  # the driver's record of the codes written,
+        # as an int array: set_amplitude() (viper) keeps it too
         p[_P_SPI] = _SPI0_BASE + 0x4000 * cfg.DAC_SPI_ID
         for k in range(n):
             p[_P_CS + k] = 1 << cfg.DAC_CS_PINS[k >> 1]
@@ -192,6 +198,11 @@ class Board:
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.hard_t = cfg.HARD_T_MAX_US
         p[_P_DMA] = _DMA_BASE + 0x40 * self.dma.channel
+        p[_P_ADC] = _ADC_CS
+        p[_P_TMR] = _TIMERAWL
+        p[_P_TXF] = _PIO0_TXF0
+        p[_P_SIO] = _SIO_BASE - (1 << 32)  # the same 32 bits as a signed word
+        p[_P_NMAX] = self.n_max
         p[_P_CTRL] = self.dma_ctrl
         p[_P_WORD] = self.overhead
         p[_P_HARD_T] = self.hard_t
@@ -278,16 +289,16 @@ class Board:
             w |= 0x8000  # output B
         spi = ptr32(p[_P_SPI])
         cs = p[_P_CS + ch]
-        ptr32(_SIO_OUT_CLR)[0] = cs  # chip select low
+        sio = ptr32(p[_P_SIO])
+        sio[6] = cs  # GPIO_OUT_CLR: chip select low
         spi[2] = w >> 8  # SSPDR: the FIFO is empty (every write waits for the bus and drains it)
         spi[2] = w & 0xFF
         while spi[3] & 0x10:  # SSPSR.BSY: the 16 bits on the wire
             pass
         while spi[3] & 0x4:  # SSPSR.RNE: drain what came back
             x = spi[2]
-        ptr32(_SIO_OUT_SET)[0] = cs  # chip select high: the DAC latches the word
-        codes = self.dac.codes
-        codes[ch] = code
+        sio[5] = cs  # GPIO_OUT_SET: chip select high: the DAC latches the word
+        ptr32(self.codes)[ch] = code  # the driver's record (dac.codes, an int array)
         return (code * full + 2048) >> 12
 
     def stop(self, ch):
@@ -335,11 +346,11 @@ class Board:
         if t_us < _T_FLOOR_US or t_us > p[_P_HARD_T]:
             self.refused = int(self.refused) + 1
             return 0
-        w = int(self.n_max)  # a power of 2 (_windows)
+        w = p[_P_NMAX]  # a power of 2 (_windows)
         total = (t_us + _CAPTURE_LEAD_US + _CAPTURE_POST_US) >> 1  # conversions (_SAMPLE_US), to past the fall
         first = (0 - total) & (w - 1)  # the ring's first slot: the capture's last sample lands in the window's last
         sel = p[_P_SEL + ch]
-        adc = ptr32(_ADC_CS)  # _adc_arm, inlined: CS, RESULT, FCS, FIFO at words 0..3
+        adc = ptr32(p[_P_ADC])  # _adc_arm, inlined: CS, RESULT, FCS, FIFO at words 0..3
         adc[0] = _CS_EN | sel
         adc[2] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
         while adc[2] & 0xF0000:  # FCS.LEVEL: drain the FIFO
@@ -349,12 +360,12 @@ class Board:
         dma[2] = total
         dma[3] = p[_P_CTRL]  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
         self.capturing = ch
-        tmr = ptr32(_TIMERAWL)
+        tmr = ptr32(p[_P_TMR])
         t0 = tmr[0]
         adc[0] = _CS_EN | sel | _CS_START_MANY  # the conversions start; the gate rises ~_CAPTURE_LEAD_US later
         while tmr[0] - t0 < _LEAD_WAIT_US:
             pass
-        ptr32(_PIO0_TXF0)[ch] = t_us - p[_P_WORD]  # the gate's word (its FIFO is empty between pulses)
+        ptr32(p[_P_TXF])[ch] = t_us - p[_P_WORD]  # the gate's word (its FIFO is empty between pulses)
         return total if total < w else w  # what the window keeps
 
     @micropython.viper
@@ -368,7 +379,7 @@ class Board:
         dma = ptr32(p[_P_DMA])
         while dma[3] & _DMA_BUSY:
             pass
-        ptr32(_ADC_CS)[0] = _CS_EN | p[_P_SEL + ch]
+        ptr32(p[_P_ADC])[0] = _CS_EN | p[_P_SEL + ch]
         self.capturing = -1
 
     def _abort_capture(self):
