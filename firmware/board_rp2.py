@@ -38,9 +38,9 @@ _ADC_CLK_HZ = const(48000000)
 # timing is involved). The DMA writes into a ring of ADC_WINDOW samples, so each channel
 # keeps only the capture's last 64 us, in time order, ending _CAPTURE_POST_US after
 # the falling edge: the edge and the end of the pulse are always in it.
-# _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (the
-# Python between the two stores in start() plus the gate program's set-up: 12.0 us from
-# a bare loop, 13.1-14.4 us in the frame; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
+# _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (start()'s
+# timed wait of _LEAD_WAIT_US between the two stores plus the gate program's set-up:
+# 12.9-14.2 us; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
 # edge there (~10 samples after it, ~22 before it in the window); a real chip's flash
 # cache misses only lengthen the lead, which moves the edge later in the window: up to
 # ~20 us more still leaves it inside (and a capture that ended early reads Vp low: a
@@ -50,11 +50,11 @@ _CAPTURE_POST_US = const(20)
 _T_FLOOR_US = const(20)  # hp.T_FLOOR_US (checked below): a literal, so the viper start() folds it
 _SAMPLE_US = const(2)  # board_config.ADC_SAMPLE_US (checked in Board()): start() divides by it as a shift
 # start()'s wait between the ADC's first conversion and the gate's word, in us of the
-# TIMER (RP2040 datasheet 4.6: TIMERAWL): with the gate program's own ~5.5 us set-up this
-# keeps the capture's lead on the gate at 12-16 us (tests/chip/test_chip_adc.py), as the
-# Python between the two stores did before start() was viper. Timed, not counted: a
-# real chip's flash cache misses cannot shorten it.
-_LEAD_WAIT_US = const(8)
+# TIMER (RP2040 datasheet 4.6: TIMERAWL; 8-9 us, the timer's phase): with the gate
+# program's own ~5.5 us set-up this keeps the capture's lead on the gate at 12-16 us
+# (tests/chip/test_chip_adc.py), as the Python between the two stores did before start()
+# was viper. Timed, not counted: a real chip's flash cache misses cannot shorten it.
+_LEAD_WAIT_US = const(9)
 _TIMERAWL = const(0x40054028)
 _PIO0_TXF0 = const(0x50200010)  # PIO0's TX FIFO of state machine 0; sm k at + 4k (StateMachine(k), k < 4)
 _DMA_BASE = const(0x50000000)  # DMA channel c's READ_ADDR, WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at + 0x40c
