@@ -45,14 +45,9 @@ FW_VERSION = (0, 1, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
-# module globals for the frame: one global load instead of a module attribute's (const()
-# folds only literals of this module)
-_T_FLOOR_US = hp.T_FLOOR_US
-_RP_MIN_OHM = sc.RP_MIN_OHM
-_RP_MAX_OHM = sc.RP_MAX_OHM
-_ST_FAULT_MASK = sc.ST_FAULT_MASK
-_rp_from_vp = sc.rp_from_vp  # one global load in _measure
-# Literals for the viper methods (const() folds them; checked against the modules below)
+_rp_from_vp = sc.rp_from_vp  # one global load in _measure instead of a module attribute's
+# Literals for the viper methods (const() folds only literals of this module; checked
+# against the modules' constants below)
 _C_T_FLOOR_US = const(20)
 _C_FAULT_MASK = const(0x1E0)
 _C_RP_MIN_OHM = const(500)
