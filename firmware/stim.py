@@ -172,7 +172,10 @@ def _flag(k):
 
 
 class Channel:
-    """State of one electrode channel: its controller and its supervisor."""
+    """State of one electrode channel: its controller and its supervisor. Every word of
+    v is >= 0 in the frame except _VO (the monitor offset's term): viper's ptr32 reads
+    a word sign-extended in 32-bit words (ARM) but zero-extended in 64-bit ones (the unix
+    VM), so a negative word is read with its sign restored (_measure)."""
 
     i = _word(_I)
     t = _word(_T)
@@ -528,7 +531,11 @@ class Stimulator:
         v[_VPR] = vp
         k = v[_VK]  # the monitor's gain and offset out of the read (vmon_cal.correct, inlined;
         if k:  # monotonic: a higher read stays higher)
-            x = ((x * 16 - v[_VO]) * k + 65536) >> 17
+            o = v[_VO]  # may be negative: a 64-bit VM's ptr32 reads the word zero-extended,
+            if (o >> 31) & 1:  # so its sign is restored (m * m is 2**32 there, 0 in 32-bit words)
+                m = 65536
+                o -= m * m
+            x = ((x * 16 - o) * k + 65536) >> 17
             if x < 0:
                 x = 0
             elif x > 4095:
