@@ -38,16 +38,47 @@ _ADC_CLK_HZ = const(48000000)
 # timing is involved). The DMA writes into a ring of ADC_WINDOW samples, so each channel
 # keeps only the capture's last 64 us, in time order, ending _CAPTURE_POST_US after
 # the falling edge: the edge and the end of the pulse are always in it.
-# _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (the
-# Python between the two stores in start() plus the gate program's set-up: 12.0 us from
-# a bare loop, 13.1-14.4 us in the frame; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
+# _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (start()'s
+# timed wait of _LEAD_WAIT_US between the two stores plus the gate program's set-up:
+# 12.9-14.2 us; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
 # edge there (~10 samples after it, ~22 before it in the window); a real chip's flash
 # cache misses only lengthen the lead, which moves the edge later in the window: up to
 # ~20 us more still leaves it inside (and a capture that ended early reads Vp low: a
 # lower charge, never a higher one).
 _CAPTURE_LEAD_US = const(12)
 _CAPTURE_POST_US = const(20)
-_T_FLOOR_US = hp.T_FLOOR_US
+_T_FLOOR_US = const(20)  # hp.T_FLOOR_US (checked below): a literal, so the viper start() folds it
+_SAMPLE_US = const(2)  # board_config.ADC_SAMPLE_US (checked in Board()): start() divides by it as a shift
+# start()'s wait between the ADC's first conversion and the gate's word, in us of the
+# TIMER (RP2040 datasheet 4.6: TIMERAWL; 8-9 us, the timer's phase): with the gate
+# program's own ~5.5 us set-up this keeps the capture's lead on the gate at 12-16 us
+# (tests/chip/test_chip_adc.py), as the Python between the two stores did before start()
+# was viper. Timed, not counted: a real chip's flash cache misses cannot shorten it.
+_LEAD_WAIT_US = const(9)
+_TIMERAWL = const(0x40054028)
+_PIO0_TXF0 = const(0x50200010)  # PIO0's TX FIFO of state machine 0; sm k at + 4k (StateMachine(k), k < 4)
+_DMA_BASE = const(0x50000000)  # DMA channel c's READ_ADDR, WRITE_ADDR, TRANS_COUNT, CTRL_TRIG at + 0x40c
+_DMA_BUSY = const(0x1000000)  # CTRL.BUSY
+_SPI0_BASE = const(0x4003C000)  # SPI1 at + 0x4000; SSPDR at word 2, SSPSR at word 3
+_SIO_BASE = const(0xD0000000)
+# Board.p: the numbers start(), wait() and set_amplitude() read, one int array (ptr32 in viper)
+_P_DMA = const(0)  # the DMA channel's register base
+_P_CTRL = const(1)  # its CTRL_TRIG word for a capture
+_P_WORD = const(2)  # what the gate's word is short of t_us (pio_gate.GATE_OVERHEAD_US)
+_P_HARD_T = const(3)
+_P_ADDR = const(4)  # + ch: channel ch's capture window address
+_P_SEL = const(8)  # + ch: its CS.AINSEL << 12
+_P_SPI = const(12)  # the DAC's SPI register base
+_P_FULL = const(13)  # + ch: the DAC output's current at code 4096 (with its gain)
+_P_CS = const(17)  # + ch: 1 << its chip-select pin
+_P_ADC = const(21)  # the peripherals' addresses (as words here: an address >= 2**30 written as a
+_P_TMR = const(22)  # const() is a long int the viper code would convert at every use, ~1.2 us each)
+_P_TXF = const(23)
+_P_SIO = const(24)  # SIO base: GPIO_OUT_SET at word 5, GPIO_OUT_CLR at word 6
+_P_NMAX = const(25)  # the capture window (samples, a power of 2)
+_P_LEN = const(26)
+if hp.T_FLOOR_US != _T_FLOOR_US:
+    raise ImportError("board_rp2: _T_FLOOR_US differs from hid_protocol.T_FLOOR_US")
 # Instructions executed directly by stop(), encoded once at import (nothing per call)
 _PULL_NOBLOCK = rp2.asm_pio_encode("pull(noblock)", 0)
 _SET_PINS_0 = rp2.asm_pio_encode("set(pins, 0)", 0)
@@ -110,19 +141,6 @@ def outputs_off(cfg):
         machine.Pin(pin, machine.Pin.OUT, value=1)
 
 
-@micropython.viper
-def _adc_arm(sel: int):
-    """The ADC on for input sel (RP2040 datasheet 4.9.6: CS.AINSEL << 12 in sel), no
-    conversion yet; its FIFO on, a DMA request per sample, the error flags cleared,
-    then emptied. Viper, because speed forces it: the register stores and the FIFO
-    reads are machine code, ~30 us less a pulse on the chip than mem32 from Python."""
-    adc = ptr32(_ADC_CS)  # CS, RESULT, FCS, FIFO at words 0..3
-    adc[0] = _CS_EN | sel
-    adc[2] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
-    while adc[2] & 0xF0000:  # FCS.LEVEL: drain the FIFO
-        x = adc[3]
-
-
 class Clock:
     ticks_us = staticmethod(time.ticks_us)
     ticks_add = staticmethod(time.ticks_add)
@@ -147,13 +165,22 @@ class Board:
             sm = rp2.StateMachine(k, pio_gate.gate, freq=pio_gate.FREQ_HZ, set_base=self.gates[k])
             sm.active(1)
             self.sms.append(sm)
+        if cfg.ADC_SAMPLE_US != _SAMPLE_US or n > 4:
+            raise ValueError("board_rp2: ADC_SAMPLE_US must be %d us, N_CHANNELS at most 4" % _SAMPLE_US)
+        p = self.p = array("i", [0] * _P_LEN)  # start(), wait(), set_amplitude() (viper) read these
         self.dac = dac(cfg, n)
+        self.codes = self.dac.codes = array("i", self.dac.codes)  # the driver's record of the codes written,
+        # as an int array: set_amplitude() (viper) keeps it too
+        p[_P_SPI] = _SPI0_BASE + 0x4000 * cfg.DAC_SPI_ID
+        for k in range(n):
+            p[_P_CS + k] = 1 << cfg.DAC_CS_PINS[k >> 1]
+            p[_P_FULL + k] = self.dac.full[k]
         self.dac.zero_all()
-        # the frame's set_amplitude is the driver's set_ua itself (bound once here: one Python call
-        # a write instead of two, ~16 us less on the chip); the method below documents the contract
-        self.set_amplitude = self.dac.set_ua
         self.irq_on = machine.enable_irq  # the same: one Python call a frame's section less (method below)
         self.ainsel = [cfg.ADC_INPUTS[k] << 12 for k in range(n)]
+        for k in range(n):
+            p[_P_SEL + k] = self.ainsel[k]
+            p[_P_ADDR + k] = self.adc_addr[k]
         for k in range(n):
             machine.ADC(26 + cfg.ADC_INPUTS[k])  # configures the pad as an analog input
         machine.mem32[_ADC_DIV] = (_ADC_CLK_HZ // 1000000 * cfg.ADC_SAMPLE_US - 1) << 8
@@ -170,6 +197,15 @@ class Board:
         self.dma_regs = self.dma.registers
         self.overhead = pio_gate.GATE_OVERHEAD_US
         self.hard_t = cfg.HARD_T_MAX_US
+        p[_P_DMA] = _DMA_BASE + 0x40 * self.dma.channel
+        p[_P_ADC] = _ADC_CS
+        p[_P_TMR] = _TIMERAWL
+        p[_P_TXF] = _PIO0_TXF0
+        p[_P_SIO] = _SIO_BASE - (1 << 32)  # the same 32 bits as a signed word
+        p[_P_NMAX] = self.n_max
+        p[_P_CTRL] = self.dma_ctrl
+        p[_P_WORD] = self.overhead
+        p[_P_HARD_T] = self.hard_t
         self.capturing = -1  # the channel whose pulse start() began and wait() has not ended
         self.vmon_cal, self.vmon_state = load_vmon(n)  # stim.Stimulator applies it (stim._measure)
         self.refused = 0  # pulses fire() refused (T outside [T_FLOOR_US, HARD_T_MAX_US])
@@ -230,12 +266,40 @@ class Board:
     def irq_on(self, state):
         machine.enable_irq(state)
 
-    def set_amplitude(self, ch, i_ua):
+    @micropython.viper
+    def set_amplitude(self, ch: int, i_ua: int) -> int:
         """Write channel ch's DAC for the next pulse; return the current in uA the
         output stage will deliver (code * LSB, never above i_ua nor full scale).
         The MCP4822 settles in ~4.5 us; the frame writes it right after a pulse,
-        milliseconds before the next gate opens. Allocates nothing."""
-        return self.dac.set_ua(ch, i_ua)
+        milliseconds before the next gate opens. Allocates nothing.
+        The code and word are dac_mcp4822.MCP4822.set_ua's (tests/chip/test_chip_dac.py
+        reads the words the DAC receives); viper, because speed forces it: the two bytes
+        go through the SPI's data register and the chip select through the SIO, ~45 us
+        less a write on the chip than the driver's spi.write and Pin calls."""
+        p = ptr32(self.p)
+        full = p[_P_FULL + ch]
+        if i_ua <= 0:
+            code = 0
+        elif i_ua >= full:
+            code = 4095  # dac_mcp4822.CODE_MAX
+        else:
+            code = i_ua * 4096 // full  # < 4096 * 110000 < 2**31
+        w = 0x3000 | code  # gain 1x, active
+        if ch & 1:
+            w |= 0x8000  # output B
+        spi = ptr32(p[_P_SPI])
+        cs = p[_P_CS + ch]
+        sio = ptr32(p[_P_SIO])
+        sio[6] = cs  # GPIO_OUT_CLR: chip select low
+        spi[2] = w >> 8  # SSPDR: the FIFO is empty (every write waits for the bus and drains it)
+        spi[2] = w & 0xFF
+        while spi[3] & 0x10:  # SSPSR.BSY: the 16 bits on the wire
+            pass
+        while spi[3] & 0x4:  # SSPSR.RNE: drain what came back
+            x = spi[2]
+        sio[5] = cs  # GPIO_OUT_SET: chip select high: the DAC latches the word
+        ptr32(self.codes)[ch] = code  # the driver's record (dac.codes, an int array)
+        return (code * full + 2048) >> 12
 
     def stop(self, ch):
         """Gate low, no pulse pending, amplitude 0: whatever the state machine was
@@ -251,7 +315,7 @@ class Board:
         sm.restart()  # back to the program's first instruction (pull), shift counters cleared
         sm.exec(_SET_PINS_0)  # stopping mid-pulse would otherwise leave the gate high
         sm.active(1)
-        self.dac.write(ch, 0)
+        self.set_amplitude(ch, 0)
 
     def stop_all(self):
         for k in range(self.n_channels):
@@ -260,7 +324,8 @@ class Board:
     def feed_watchdog(self):
         self.wdt.feed()
 
-    def start(self, ch, t_us):
+    @micropython.viper
+    def start(self, ch: int, t_us: int) -> int:
         """Start one pulse of t_us at the set amplitude and the capture of the
         monitor across it; returns at once with the number of samples the capture
         will hold: the last n of adc[ch], in time order, the falling edge among
@@ -270,38 +335,51 @@ class Board:
 
         The board's own last check: t_us outside [T_FLOOR_US, HARD_T_MAX_US] is
         refused (no pulse, 0 samples, counted in `refused`); the PIO program
-        bounds the gate at HARD_T_MAX_US whatever word reaches it."""
-        if self.capturing >= 0:
+        bounds the gate at HARD_T_MAX_US whatever word reaches it.
+        Viper, because speed forces it: the ADC, DMA (RP2040 datasheet 2.5.7: READ_ADDR,
+        WRITE_ADDR, TRANS_COUNT, CTRL_TRIG) and PIO FIFO stores are machine code, ~80 us
+        less a pulse on the chip than from Python. The read address (the ADC FIFO) never
+        changes and the buffers never move (MicroPython's heap does not compact)."""
+        if int(self.capturing) >= 0:
             self.wait()
-        if not _T_FLOOR_US <= t_us <= self.hard_t:
-            self.refused += 1
+        p = ptr32(self.p)
+        if t_us < _T_FLOOR_US or t_us > p[_P_HARD_T]:
+            self.refused = int(self.refused) + 1
             return 0
-        total = (t_us + _CAPTURE_LEAD_US + _CAPTURE_POST_US) // self.dt_us  # conversions, to past the fall
-        w = self.n_max
-        first = (w - total % w) % w  # the ring's first slot: the capture's last sample lands in the window's last
-        n = total if total < w else w  # what the window keeps
-        mem = machine.mem32
-        sel = self.ainsel[ch]
-        _adc_arm(sel)
-        regs = self.dma_regs
-        regs[1] = self.adc_addr[ch] + 2 * first
-        regs[2] = total
-        regs[3] = self.dma_ctrl  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
+        w = p[_P_NMAX]  # a power of 2 (_windows)
+        total = (t_us + _CAPTURE_LEAD_US + _CAPTURE_POST_US) >> 1  # conversions (_SAMPLE_US), to past the fall
+        first = (0 - total) & (w - 1)  # the ring's first slot: the capture's last sample lands in the window's last
+        sel = p[_P_SEL + ch]
+        adc = ptr32(p[_P_ADC])  # _adc_arm, inlined: CS, RESULT, FCS, FIFO at words 0..3
+        adc[0] = _CS_EN | sel
+        adc[2] = _FCS_EN | _FCS_DREQ_EN | _FCS_THRESH_1 | _FCS_ERR_FLAGS
+        while adc[2] & 0xF0000:  # FCS.LEVEL: drain the FIFO
+            x = adc[3]
+        dma = ptr32(p[_P_DMA])
+        dma[1] = p[_P_ADDR + ch] + 2 * first
+        dma[2] = total
+        dma[3] = p[_P_CTRL]  # CTRL_TRIG: starts the channel, paced by the ADC's DREQ
         self.capturing = ch
-        sm = self.sms[ch]
-        mem[_ADC_CS] = _CS_EN | sel | _CS_START_MANY  # the gate rises a few us later: nothing between
-        sm.put(t_us - self.overhead)
-        return n
+        tmr = ptr32(p[_P_TMR])
+        t0 = tmr[0]
+        adc[0] = _CS_EN | sel | _CS_START_MANY  # the conversions start; the gate rises ~_CAPTURE_LEAD_US later
+        while tmr[0] - t0 < _LEAD_WAIT_US:
+            pass
+        ptr32(p[_P_TXF])[ch] = t_us - p[_P_WORD]  # the gate's word (its FIFO is empty between pulses)
+        return total if total < w else w  # what the window keeps
 
+    @micropython.viper
     def wait(self):
         """Until the capture start() began is complete (the pulse is over: the
         capture runs past its falling edge); the ADC stops. Allocates nothing."""
-        ch = self.capturing
+        ch = int(self.capturing)
         if ch < 0:
             return
-        while self.dma.active():
+        p = ptr32(self.p)
+        dma = ptr32(p[_P_DMA])
+        while dma[3] & _DMA_BUSY:
             pass
-        machine.mem32[_ADC_CS] = _CS_EN | self.ainsel[ch]
+        ptr32(p[_P_ADC])[0] = _CS_EN | p[_P_SEL + ch]
         self.capturing = -1
 
     def _abort_capture(self):
@@ -327,6 +405,7 @@ class Board:
         """Channel ch's DAC delivers ppm / 1e6 x nominal (0: nominal; the self-test's
         correction): set_amplitude() then returns the current delivered. Allocates nothing."""
         self.dac.set_gain(ch, ppm)
+        self.p[_P_FULL + ch] = self.dac.full[ch]
 
     def store_vmon(self, values, path=VMON_PATH):
         """Write the monitor correction to the flash (CMD_SET_VMON ... VMON_STORE),

@@ -18,6 +18,7 @@
 # a section then runs with interrupts held off, so no such callback can land
 # inside it (the USB controller itself goes on: PIO, DMA and timers need no CPU).
 import struct
+from array import array
 
 import sensation_core as sc
 import hid_protocol as hp
@@ -44,12 +45,20 @@ FW_VERSION = (0, 1, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
-# module globals for the frame: one global load instead of a module attribute's (const()
-# folds only literals of this module)
-_T_FLOOR_US = hp.T_FLOOR_US
-_RP_MIN_OHM = sc.RP_MIN_OHM
-_RP_MAX_OHM = sc.RP_MAX_OHM
-_ST_FAULT_MASK = sc.ST_FAULT_MASK
+_rp_from_vp = sc.rp_from_vp  # one global load in _measure instead of a module attribute's
+# Literals for the viper methods (const() folds only literals of this module; checked
+# against the modules' constants below)
+_C_T_FLOOR_US = const(20)
+_C_FAULT_MASK = const(0x1E0)
+_C_RP_MIN_OHM = const(500)
+_C_RP_MAX_OHM = const(200000)
+_C_STOP_LIMIT = const(6)
+_C_STOP_OFF = const(3)
+_C_STOP_RP_FAULT = const(4)
+if (hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
+        or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
+        or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT):
+    raise ImportError("stim: a literal of the viper frame differs from its module's constant")
 # The telemetry layout (bytes 0..O_RATE; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
 # compares the two); its offsets, type and flag values are checked at import.
@@ -111,43 +120,101 @@ def _peak_counts(buf, lo: int, hi: int) -> int:
     return best
 
 
+# A channel's numbers the frame reads and writes every pulse, as words of one int array
+# (Channel.v): the frame's viper methods reach each with one load or store (ptr32) instead of
+# an attribute lookup (~1.5 us each on the chip, ~55 a channel a frame). Everything
+# else (commands, tests) reads and writes them as attributes (the properties below).
+_I = const(0)  # pulse for this frame (0: none), uA
+_T = const(1)  # its width, us
+_DI = const(2)  # pulse delivered this frame (telemetry)
+_DT = const(3)
+_AI = const(4)  # the current the amplitude output was last set for (0: stopped)
+_AD = const(5)  # what the board said that setting delivers (board.set_amplitude's answer)
+_NS = const(6)  # monitor samples captured across this frame's pulse
+_VP = const(7)
+_VPR = const(8)  # Vp before the monitor correction (the electrode-off rule reads both)
+_RP = const(9)
+_ARMED = const(10)  # 0/1 (read as a bool)
+_HELD = const(11)  # 0/1: a raise is held for a second measurement
+_CALIB = const(12)  # 0/1: the next pulse is the calibration pulse
+_CALP = const(13)  # 0/1: this frame's pulse is the calibration pulse (telemetry flag)
+_STOP = const(14)
+_PI = const(15)  # the held proposal
+_PT = const(16)
+_CH = const(17)
+_HID = const(18)  # hard limits for the current the board reports it delivers (_vmon_apply)
+_HQD = const(19)
+_VK = const(20)  # the monitor correction as vmon_cal.terms() for _measure (0: none)
+_VO = const(21)
+_W = const(22)  # samples in the capture window (len(c.adc))
+_UV = const(23)  # uV per ADC count (the Stimulator's uv_per_count)
+_NV = const(24)
+
+
+def _word(k):
+    def get(self):
+        return self.v[k]
+
+    def put(self, x):
+        self.v[k] = x
+
+    return property(get, put)
+
+
+def _flag(k):
+    def get(self):
+        return self.v[k] != 0
+
+    def put(self, x):
+        self.v[k] = 1 if x else 0
+
+    return property(get, put)
+
+
 class Channel:
-    """State of one electrode channel: its controller and its supervisor."""
+    """State of one electrode channel: its controller and its supervisor. Every word of
+    v is >= 0 in the frame except _VO (the monitor offset's term): viper's ptr32 reads
+    a word sign-extended in 32-bit words (ARM) but zero-extended in 64-bit ones (the unix
+    VM), so a negative word is read with its sign restored (_measure)."""
+
+    i = _word(_I)
+    t = _word(_T)
+    di = _word(_DI)
+    dt = _word(_DT)
+    ai = _word(_AI)
+    ad = _word(_AD)
+    n_samples = _word(_NS)
+    vp = _word(_VP)
+    vp_raw = _word(_VPR)
+    rp = _word(_RP)
+    armed = _flag(_ARMED)
+    held = _flag(_HELD)
+    calibrating = _flag(_CALIB)
+    cal_pulse = _flag(_CALP)
+    stop = _word(_STOP)
+    pi = _word(_PI)
+    pt = _word(_PT)
+    ch = _word(_CH)
+    hard_i_d = _word(_HID)
+    hard_q_d = _word(_HQD)
+    vmon_k = _word(_VK)
+    vmon_o = _word(_VO)
 
     def __init__(self, ch, lim):
+        self.v = array("i", [0] * _NV)
         self.ch = ch
         self.ctl = sc.Controller(lim[0], lim[1], lim[2], lim[3], lim[4])
-        self.armed = False
         self.stop = hp.STOP_IDLE
         self.have_cal = False
         self.i0 = 0
         self.t0 = 0
         self.x = 0
         self.y = 0
-        self.calibrating = False
-        self.cal_pulse = False  # this frame's pulse is the calibration pulse (telemetry flag)
-        self.i = 0  # pulse for this frame (0: none)
-        self.t = 0
-        self.di = 0  # pulse delivered this frame (telemetry)
-        self.dt = 0
-        self.ai = 0  # the current the amplitude output was last set for (0: stopped)
-        self.ad = 0  # what the board said that setting delivers (board.set_amplitude's answer)
-        self.n_samples = 0  # monitor samples captured across this frame's pulse
-        self.adc = None  # into this buffer (the board's, bound by the Stimulator)
-        self.vp = 0
-        self.vp_raw = 0  # Vp before the monitor correction (the electrode-off rule reads both)
-        self.rp = 0
-        self.held = False
-        self.pi = 0  # the held proposal
-        self.pt = 0
-        self.vmon_g = 0  # the monitor correction applied (gain ppm, offset mV; 0, 0: none) ...
+        self.adc = None  # the capture buffer (the board's, bound by the Stimulator)
+        self.vmon_g = 0  # the monitor correction applied (gain ppm, offset mV; 0, 0: none; terms in vmon_k, vmon_o)
         self.vmon_off = 0
-        self.vmon_k = 0  # ... as vmon_cal.terms() for _measure (0: none)
-        self.vmon_o = 0
         self.vmon_dac = 0  # the amplitude DAC's gain applied (ppm; 0: nominal)
         self.vmon_stored = None  # (gain ppm, offset mV, DAC gain ppm) the board's flash holds for this channel
-        self.hard_i_d = 0  # the hard limits for the current the board reports it delivers: lower than
-        self.hard_q_d = 0  # the Stimulator's by a stored DAC gain < 1 (_vmon_apply)
 
 
 class Stimulator:
@@ -166,6 +233,8 @@ class Stimulator:
         self.board_name = cfg.BOARD_NAME
         self.board_bytes = cfg.BOARD_NAME.encode()  # indexing bytes allocates nothing
         self.uv_per_count = cfg.VMON_UV_PER_COUNT
+        if not 0 < cfg.VMON_UV_PER_COUNT < (1 << 30) // 4096:  # _measure's products stay < 2**30
+            raise ValueError("board config: VMON_UV_PER_COUNT must be in [1, %d]" % ((1 << 30) // 4096 - 1))
         if not (cfg.HARD_I_MAX_UA <= sc.I_LIMIT_UA and cfg.HARD_T_MAX_US <= sc.T_LIMIT_US
                 and cfg.HARD_Q_MAX_PC <= sc.Q_LIMIT_PC and cfg.COMPLIANCE_MV <= sc.VP_LIMIT_MV):
             raise ValueError("board config hard limits exceed the core's envelope (docs/controller.md)")
@@ -192,6 +261,8 @@ class Stimulator:
         self.chans = [Channel(k, lim) for k in range(n)]
         for c in self.chans:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
+            c.v[_W] = len(c.adc)
+            c.v[_UV] = self.uv_per_count
         # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
         vm = getattr(board, "vmon_cal", None)
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
@@ -222,6 +293,8 @@ class Stimulator:
         self._ticks_diff = clock.ticks_diff  # bound once (the frame's keep-alive check)
         self.tx = bytearray(hp.REPORT_LEN)  # replies to commands
         self.tel = [bytearray(hp.REPORT_LEN) for _ in range(n)]  # each channel's telemetry, sent after the pulses
+        for c in self.chans:
+            c.tel = self.tel[c.ch]
         self.rx = bytearray(hp.REPORT_LEN)
         self.acks = 0
         self.n_cmds = 0
@@ -237,6 +310,19 @@ class Stimulator:
         self._overlap = hasattr(board, "start") and hasattr(board, "wait")
         self._start = board.start if self._overlap else None  # bound once: calls allocate nothing
         self._wait = board.wait if self._overlap else None
+        # Bound once, here: on the chip a method looked up on an instance costs ~15 us more than
+        # a call of a bound one (~11 us), and the frame makes ~8 such calls a channel
+        # (docs/performance.md); calling a bound method allocates nothing. (_encode_telemetry
+        # is looked up each time: tests replace it on the class.)
+        self._set_amplitude = board.set_amplitude
+        self._send = board.send
+        self._recv = board.recv
+        self._f_pulse = self._pulse
+        self._f_channel = self._channel
+        self._f_measure = self._measure
+        self._f_supervise = self._supervise
+        self._f_control = self._control
+        self._f_output = self._output
         self.started = False
         self.deadline = 0
         self.errors = 0
@@ -305,14 +391,14 @@ class Stimulator:
         k = 0
         while k < n:
             c = chans[k]
-            self._pulse(k, c)  # on the rp2 the gate is open when this returns
+            ns = self._f_pulse(k, c)  # on the rp2 the gate is open when this returns (self._pulse)
             if prev is not None:
-                self._channel(prev)  # meanwhile: the previous channel
-            if overlap and c.n_samples:
+                self._f_channel(prev)  # meanwhile: the previous channel (self._channel)
+            if overlap and ns:
                 self._wait()  # until channel k's capture is complete
             prev = c
             k += 1
-        self._channel(prev)
+        self._f_channel(prev)
         self.locked = 0  # _leave, inlined
         _unlock()
         irq_on = self._irq_on
@@ -320,56 +406,63 @@ class Stimulator:
             irq_on(self._irq)
         tel = self.tel
         k = 0
+        send = self._send  # board.send
         while k < n:
-            board.send(tel[k])
+            send(tel[k])
             k += 1
-        if board.recv(self.rx):  # a command waits (most frames: none)
+        if self._recv(self.rx):  # a command waits (most frames: none); board.recv
             self._serve_commands(now)
         self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
-    @micropython.native
-    def _pulse(self, k, c):
+    @micropython.viper
+    def _pulse(self, k: int, c) -> int:
         """Channel k's pulse for this frame, after the last check right before the
-        gate opens: the hard limits, independent of the controller."""
-        c.n_samples = 0
-        c.cal_pulse = c.calibrating
-        i = c.i
-        t = c.t
-        ad = c.ad  # the delivered current is the truth: Rp, mQ and telemetry use it
-        c.di = 0
-        c.dt = 0
-        if not c.armed or i <= 0:
-            return
-        hard_i = self.hard_i
-        hard_q = self.hard_q
-        if i > hard_i or t > self.hard_t or t < _T_FLOOR_US or i * t > hard_q:
-            self._latch(c, hp.STOP_LIMIT)
-            return
-        if c.ai != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
-            return
-        if ad > c.hard_i_d or ad * t > c.hard_q_d:  # a board that would deliver beyond the hard limits
-            self._latch(c, hp.STOP_LIMIT)
-            return
-        c.di = ad
-        c.dt = t
+        gate opens: the hard limits, independent of the controller. Returns the
+        samples its capture will hold (c.n_samples; 0: no pulse). Viper, because
+        speed forces it (here and in the channel's work below: the channel's numbers
+        are words of c.v, ~1.5 us less each than an attribute on the chip): each
+        product is formed only once its factors passed their bounds (hard limits
+        within the core's envelope: < 2**30), so machine words agree with CPython's ints."""
+        v = ptr32(c.v)
+        v[_NS] = 0
+        v[_CALP] = v[_CALIB]
+        i = v[_I]
+        t = v[_T]
+        ad = v[_AD]  # the delivered current is the truth: Rp, mQ and telemetry use it
+        v[_DI] = 0
+        v[_DT] = 0
+        if v[_ARMED] == 0 or i <= 0:
+            return 0
+        if i > int(self.hard_i) or t > int(self.hard_t) or t < _C_T_FLOOR_US or i * t > int(self.hard_q):
+            self._latch(c, _C_STOP_LIMIT)
+            return 0
+        if v[_AI] != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
+            return 0
+        if ad > v[_HID] or ad * t > v[_HQD]:  # a board that would deliver beyond the hard limits
+            self._latch(c, _C_STOP_LIMIT)
+            return 0
+        v[_DI] = ad
+        v[_DT] = t
         if self._overlap:
-            c.n_samples = self._start(k, t)
+            v[_NS] = int(self._start(k, t))
         else:  # the simulated board allocates: its calls run outside the heap-locked section
             self._leave()
-            c.n_samples = self.board.fire(k, t)
+            v[_NS] = int(self.board.fire(k, t))
             self._enter()
+        return v[_NS]
 
     @micropython.native
     def _channel(self, c):
-        """A channel's work after its pulse, in the order of the paper's Fig. 3 loop."""
-        self._measure(c)
-        if self._supervise(c):
-            self._control(c)
+        """A channel's work after its pulse, in the order of the paper's Fig. 3 loop
+        (_measure, _supervise, _control, _output, _encode_telemetry; bound once: __init__)."""
+        self._f_measure(c)
+        if self._f_supervise(c):
+            self._f_control(c)
         if self._overlap:
-            self._output(c)  # the amplitude settles during the rest of the frame
+            self._f_output(c)  # the amplitude settles during the rest of the frame
         else:
             self._leave()
-            self._output(c)
+            self._f_output(c)
             self._enter()
         self._encode_telemetry(c)
 
@@ -410,86 +503,103 @@ class Stimulator:
 
     # -------------------------------------------------------------- safety
     def _latch(self, c, reason):
-        c.armed = False
-        c.calibrating = False
-        c.held = False
-        c.stop = reason
-        c.i = 0
-        c.t = 0
-        c.ai = 0  # the output must be set again before any pulse
-        c.ad = 0
+        v = c.v
+        v[_ARMED] = 0
+        v[_CALIB] = 0
+        v[_HELD] = 0
+        v[_STOP] = reason
+        v[_I] = 0
+        v[_T] = 0
+        v[_AI] = 0  # the output must be set again before any pulse
+        v[_AD] = 0
 
+    @micropython.viper
     def _measure(self, c):
         """Vp: the end-of-pulse voltage in mV (_peak_counts over the board's window
         of the last n samples, the falling edge among them, with its spike guard). Rp from Vp and the delivered
-        current (0: no pulse)."""
-        n = c.n_samples
-        buf = c.adc
-        v = 0
+        current (0: no pulse). Machine-word arithmetic, every value < 2**30 (uv_per_count is
+        checked at set-up: 4096 x it < 2**30), so 32-bit (ARM) and 64-bit (x64) words agree
+        with CPython's ints; nothing allocated."""
+        v = ptr32(c.v)
+        n = v[_NS]
+        x = 0
         if n > 0:
-            w = len(buf)
-            v = _peak_counts(buf, w - n, w)
-        vp = v * self.uv_per_count // 1000
-        c.vp_raw = vp
-        k = c.vmon_k  # the monitor's gain and offset out of the read (vmon_cal.correct, inlined;
+            w = v[_W]
+            x = int(_peak_counts(c.adc, w - n, w))
+        uv = v[_UV]
+        vp = x * uv // 1000
+        v[_VPR] = vp
+        k = v[_VK]  # the monitor's gain and offset out of the read (vmon_cal.correct, inlined;
         if k:  # monotonic: a higher read stays higher)
-            v = ((v * 16 - c.vmon_o) * k + 65536) >> 17
-            if v < 0:
-                v = 0
-            elif v > 4095:
-                v = 4095
-            vp = v * self.uv_per_count // 1000
-        c.vp = vp
-        c.rp = sc.rp_from_vp(vp, c.di) if c.di else 0
+            o = v[_VO]  # may be negative: a 64-bit VM's ptr32 reads the word zero-extended,
+            if (o >> 31) & 1:  # so its sign is restored (m * m is 2**32 there, 0 in 32-bit words)
+                m = 65536
+                o -= m * m
+            x = ((x * 16 - o) * k + 65536) >> 17
+            if x < 0:
+                x = 0
+            elif x > 4095:
+                x = 4095
+            vp = x * uv // 1000
+        v[_VP] = vp
+        di = v[_DI]
+        if di:
+            v[_RP] = int(_rp_from_vp(vp, di))
+        else:
+            v[_RP] = 0
 
-    @micropython.native
-    def _supervise(self, c):
+    @micropython.viper
+    def _supervise(self, c) -> bool:
         """The electrode rules on this pulse's Rp: off or shorted latches the
         channel. True if the controller may act on the measurement."""
-        if c.di == 0:
+        v = ptr32(c.v)
+        if v[_DI] == 0:
             return False
-        rp = c.rp
+        rp = v[_RP]
+        off = int(self.vp_off_mv)
         # off: the corrected or the raw reading at compliance (a wrong stored gain > 1 must not hide it)
-        if c.vp >= self.vp_off_mv or c.vp_raw >= self.vp_off_mv or rp > _RP_MAX_OHM:
-            self._latch(c, hp.STOP_ELECTRODE_OFF)
+        if v[_VP] >= off or v[_VPR] >= off or rp > _C_RP_MAX_OHM:
+            self._latch(c, _C_STOP_OFF)
             c.ctl.stop(sc.ST_RP_HIGH)
             return False
-        if rp < _RP_MIN_OHM:
-            self._latch(c, hp.STOP_RP_FAULT)
+        if rp < _C_RP_MIN_OHM:
+            self._latch(c, _C_STOP_RP_FAULT)
             c.ctl.stop(sc.ST_RP_LOW)
             return False
         return True
 
-    @micropython.native
+    @micropython.viper
     def _control(self, c):
         """The controller's next pulse; one measurement may lower the charge,
-        raising it takes two in a row (the smaller of the two proposals)."""
+        raising it takes two in a row (the smaller of the two proposals). The
+        products are of currents and widths within the soft limits: < 2**30."""
+        v = ptr32(c.v)
         ctl = c.ctl
-        if c.calibrating:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
-            ctl.calibrate(c.i0, c.t0, c.rp, c.x, c.y)
-            c.calibrating = False
+        if v[_CALIB]:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
+            ctl.calibrate(c.i0, c.t0, v[_RP], c.x, c.y)
+            v[_CALIB] = 0
         else:
-            ctl.delivered(c.di, c.dt)  # a held proposal was not what was measured
-            if ctl.update(c.rp) & _ST_FAULT_MASK:
-                self._latch(c, hp.STOP_RP_FAULT)
+            ctl.delivered(v[_DI], v[_DT])  # a held proposal was not what was measured
+            if int(ctl.update(v[_RP])) & _C_FAULT_MASK:
+                self._latch(c, _C_STOP_RP_FAULT)
                 return
-        ni = ctl.i_ua
-        nt = ctl.t_us
+        ni = int(ctl.i_ua)
+        nt = int(ctl.t_us)
         q = ni * nt
-        if q <= c.i * c.t:
-            c.held = False
-        elif c.held:
-            if c.pi * c.pt < q:
-                ni = c.pi
-                nt = c.pt
-            c.held = False
+        if q <= v[_I] * v[_T]:
+            v[_HELD] = 0
+        elif v[_HELD]:
+            if v[_PI] * v[_PT] < q:
+                ni = v[_PI]
+                nt = v[_PT]
+            v[_HELD] = 0
         else:
-            c.held = True
-            c.pi = ni
-            c.pt = nt
+            v[_HELD] = 1
+            v[_PI] = ni
+            v[_PT] = nt
             return
-        c.i = ni
-        c.t = nt
+        v[_I] = ni
+        v[_T] = nt
 
     def _check_keepalive(self):
         """The host is overdue (frame checked it): every armed channel is latched."""
@@ -500,17 +610,18 @@ class Stimulator:
                 self._latch(c, hp.STOP_KEEPALIVE)
             k += 1
 
-    @micropython.native
+    @micropython.viper
     def _output(self, c):
         """Channel c's outputs follow its state: amplitude for the next pulse, or stopped."""
-        if c.armed:
-            i = c.i
-            c.ad = self.board.set_amplitude(c.ch, i)  # the current the output stage will deliver
-            c.ai = i
+        v = ptr32(c.v)
+        if v[_ARMED]:
+            i = v[_I]
+            v[_AD] = int(self._set_amplitude(v[_CH], i))  # the current the output stage will deliver
+            v[_AI] = i
         else:
-            c.ai = 0
-            c.ad = 0
-            self.board.stop(c.ch)
+            v[_AI] = 0
+            v[_AD] = 0
+            self.board.stop(v[_CH])
 
     def sync_outputs(self):
         k = 0
@@ -545,31 +656,32 @@ class Stimulator:
         takes the low 16 bits as put_u16 does; the u8 fields are small. Nothing
         allocated (each value stored back is a small int)."""
         ctl = c.ctl
-        b = self.tel[c.ch]
+        cv = ptr32(c.v)
+        b = c.tel
         p8 = ptr8(b)  # the buffer is a heap block: 4-byte aligned for the 32-bit stores
         p16 = ptr16(b)
         p32 = ptr32(b)
-        di = int(c.di)
+        di = cv[_DI]
         f = 0
-        if c.armed:
+        if cv[_ARMED]:
             f = 0x01  # FLAG_ARMED
-        if c.held:
+        if cv[_HELD]:
             f |= 0x02  # FLAG_HELD
         if self.keepalive_ms:
             f |= 0x04  # FLAG_KEEPALIVE
-        if c.cal_pulse:
+        if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
         seq = int(self.seq)
         p8[0] = 0x01  # REP_TELEMETRY
-        p8[1] = int(c.ch)
+        p8[1] = cv[_CH]
         p8[2] = int(ctl.mode)
-        p8[3] = int(c.stop)
+        p8[3] = cv[_STOP]
         p32[1] = seq  # O_SEQ 4
         p32[2] = int(self.frame_t)  # O_TIME 8
         p16[6] = di  # O_I 12
-        p16[7] = int(c.dt)  # O_T 14
-        p32[4] = int(c.vp)  # O_VP 16
-        p32[5] = int(c.rp)  # O_RP 20
+        p16[7] = cv[_DT]  # O_T 14
+        p32[4] = cv[_VP]  # O_VP 16
+        p32[5] = cv[_RP]  # O_RP 20
         p32[6] = int(ctl.me_ua2ms)  # O_ME 24
         p32[7] = int(ctl.mq_target_fc_per_ohm)  # O_MQT 28
         p32[8] = int(ctl.mq_last_fc_per_ohm) if di else 0  # O_MQL 32

@@ -11,9 +11,12 @@ import sensation_core as sc
 from .harness import CPU_WORK, frame_setup
 
 US = 1000  # ns
-# (channels, rate Hz, mode, T0 us) where the CPU work per channel is <= 1 ms (docs/performance.md)
-# (AKHTAR 2 @ 50 Hz T0 200: 925 us measured; AKHTAR 4 @ 50 Hz T0 1000: 922; open loop 1 @ 100 Hz T0 1000: 918-935)
-CPU_WORK_CASES = [(2, 50, sc.MODE_AKHTAR, 200), (4, 50, sc.MODE_AKHTAR, 1000), (1, 100, sc.MODE_OPEN_LOOP, 1000)]
+# (channels, rate Hz, mode, T0 us, bound in us per channel) for the CPU work a channel, from
+# docs/performance.md's table (worst of 10 frames there): open loop and AKHTAR well under
+# 1 ms, MODE_FAST (without a skin model) within 1 ms, also at its longest pulse
+CPU_WORK_CASES = [(1, 100, sc.MODE_OPEN_LOOP, 1000, 650), (2, 50, sc.MODE_AKHTAR, 200, 750),
+                  (4, 50, sc.MODE_AKHTAR, 1000, 750), (1, 100, sc.MODE_FAST, 7500, 1000),
+                  (4, 50, sc.MODE_FAST, 2000, 1000)]
 
 FRAMES = """
 o0 = s.overruns
@@ -110,14 +113,15 @@ print((list(work), over, s.errors, [c.stop for c in s.chans]))
 """
 
 
-@pytest.mark.parametrize("n, rate, mode, t0", CPU_WORK_CASES)
-def test_cpu_work_per_channel_is_at_most_1_ms(chip, cfg, n, rate, mode, t0):
+@pytest.mark.parametrize("n, rate, mode, t0, bound_us", CPU_WORK_CASES)
+def test_cpu_work_per_channel_is_within_its_bound(chip, cfg, n, rate, mode, t0, bound_us):
     """Issue 12, deliverable 3: the whole frame's CPU work (the frame minus the CPU's idle
-    wait for a capture: tests/chip/harness.py CPU_WORK, as bench/chip.py measures it) is at
-    most 1 ms per channel, where docs/performance.md's table says it holds."""
+    wait for a capture: tests/chip/harness.py CPU_WORK, as bench/chip.py measures it) per
+    channel is within the bound docs/performance.md's table supports: <= 1 ms in every
+    mode without a skin model, open loop <= 650 us."""
     script = frame_setup(chip, cfg, n, rate, mode, t0) + CPU_WORK.format(warm=3, frames=5) + WORK
     work, overruns, errors, stops = chip.eval_out(script)
     print(f"{n} ch @ {rate} Hz, mode {mode}, T0 {t0} us: CPU work {work} us ({max(work) / n:.0f} us a channel)")
     assert (overruns, errors, stops) == (0, 0, [0] * n)
     assert len(work) == 5 and min(work) > 0
-    assert max(work) <= 1000 * n
+    assert bound_us <= 1000 and max(work) <= bound_us * n
