@@ -269,7 +269,8 @@ class Board:
     @micropython.viper
     def set_amplitude(self, ch: int, i_ua: int) -> int:
         """Write channel ch's DAC for the next pulse; return the current in uA the
-        output stage will deliver (code * LSB, never above i_ua nor full scale).
+        output stage will deliver (code * LSB, never above i_ua nor full scale;
+        i_ua is a machine word: an int past 32 bits is cut, never to above full scale).
         The MCP4822 settles in ~4.5 us; the frame writes it right after a pulse,
         milliseconds before the next gate opens. Allocates nothing.
         The code and word are dac_mcp4822.MCP4822.set_ua's (tests/chip/test_chip_dac.py
@@ -335,7 +336,9 @@ class Board:
 
         The board's own last check: t_us outside [T_FLOOR_US, HARD_T_MAX_US] is
         refused (no pulse, 0 samples, counted in `refused`); the PIO program
-        bounds the gate at HARD_T_MAX_US whatever word reaches it.
+        bounds the gate at HARD_T_MAX_US whatever word reaches it. ch and t_us are
+        machine words (viper): an int past 32 bits is cut before the check, so the
+        check is on the cut value; stim passes words it checked against the hard limits.
         Viper, because speed forces it: the ADC, DMA (RP2040 datasheet 2.5.7: READ_ADDR,
         WRITE_ADDR, TRANS_COUNT, CTRL_TRIG) and PIO FIFO stores are machine code, ~80 us
         less a pulse on the chip than from Python. The read address (the ADC FIFO) never

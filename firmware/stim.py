@@ -151,7 +151,26 @@ _UV = const(23)  # uV per ADC count (the Stimulator's uv_per_count)
 _NV = const(24)
 
 
+def _vmon_product_max(uv):
+    """The largest |(16 x - o) k| + 2**16 _measure can form for a read x <= 4095 counts,
+    the offset term o of +-VMON_OFFSET_MV_MAX at uv uV a count and the gain term k of the
+    lowest accepted gain (Stimulator._vmon_apply's terms). In a machine word on the chip:
+    the board config is refused where it could reach 2**30 (review: uv <= 187 wrapped)."""
+    k = (81920000 + hp.VMON_GAIN_PPM_MIN // 200) // (hp.VMON_GAIN_PPM_MIN // 100)
+    o = (hp.VMON_OFFSET_MV_MAX * 32000 + uv) // (2 * uv) + 1  # +1: a negative offset rounds down
+    return (4095 * 16 + o) * k + 65536
+
+
+def _vmon_uv_min():
+    uv = 1
+    while _vmon_product_max(uv) >= 1 << 30:
+        uv += 1
+    return uv
+
+
 def _word(k):
+    # a word of Channel.v: the array stores a machine word (MicroPython cuts an int past
+    # it where CPython raises); every command path writes values checked far inside it
     def get(self):
         return self.v[k]
 
@@ -235,6 +254,9 @@ class Stimulator:
         self.uv_per_count = cfg.VMON_UV_PER_COUNT
         if not 0 < cfg.VMON_UV_PER_COUNT < (1 << 30) // 4096:  # _measure's products stay < 2**30
             raise ValueError("board config: VMON_UV_PER_COUNT must be in [1, %d]" % ((1 << 30) // 4096 - 1))
+        if _vmon_product_max(cfg.VMON_UV_PER_COUNT) >= 1 << 30:  # _measure's correction product
+            raise ValueError("board config: VMON_UV_PER_COUNT must be >= %d (the monitor correction's "
+                             "offset term at +-%d mV stays < 2**30)" % (_vmon_uv_min(), hp.VMON_OFFSET_MV_MAX))
         if not (cfg.HARD_I_MAX_UA <= sc.I_LIMIT_UA and cfg.HARD_T_MAX_US <= sc.T_LIMIT_US
                 and cfg.HARD_Q_MAX_PC <= sc.Q_LIMIT_PC and cfg.COMPLIANCE_MV <= sc.VP_LIMIT_MV):
             raise ValueError("board config hard limits exceed the core's envelope (docs/controller.md)")
@@ -525,6 +547,8 @@ class Stimulator:
         x = 0
         if n > 0:
             w = v[_W]
+            if n > w:  # a board that reports more samples than its window: read the window only
+                n = w
             x = int(_peak_counts(c.adc, w - n, w))
         uv = v[_UV]
         vp = x * uv // 1000

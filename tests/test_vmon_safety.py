@@ -92,3 +92,64 @@ result(r=r, armed_after=armed_after, same=same, r2=r2, have_cal=s.chans[0].have_
     assert r["r"][5] != hp.RES_OK and not r["armed_after"], r
     assert r["r"][6:] == [hp.RES_OK, hp.RES_OK], r
     assert r["r2"] == hp.RES_OK and r["have_cal"]  # the monitor alone changed: the calibration stands
+
+
+def test_a_board_config_whose_monitor_correction_could_pass_2_30_is_refused():
+    """_measure forms (16 x - o) k in a machine word on the chip; at a small enough
+    VMON_UV_PER_COUNT the offset term o makes it wrap there (review: uv <= 187 read 0 V as
+    full scale). The set-up refuses such a config, naming the least it accepts; at that
+    least, the real terms the board computes for the extreme gain and offsets stay < 2**30."""
+    _, res, _ = run_fw(SETUP + """
+class Cfg:
+    pass
+
+def with_uv(uv):
+    c = Cfg()
+    for k in dir(cfg):
+        if not k.startswith('_'):
+            setattr(c, k, getattr(cfg, k))
+    c.VMON_UV_PER_COUNT = uv
+    return c
+
+least = stim._vmon_uv_min()
+errs = []
+for uv in (100, 187, least - 1):
+    try:
+        stim.Stimulator(SimBoard(cfg, VirtualClock(0), sim_electrode.scenario('steady'), 1, 1, MemoryUSB(True)), VirtualClock(0), with_uv(uv), 1, 50, 0)
+        errs.append(None)
+    except ValueError as e:
+        errs.append(str(e))
+s = stim.Stimulator(SimBoard(cfg, VirtualClock(0), sim_electrode.scenario('steady'), 1, 1, MemoryUSB(True)), VirtualClock(0), with_uv(least), 1, 50, 0)
+c = s.chans[0]
+worst = 0
+for g in (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX):
+    for off in (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX):
+        s._vmon_apply(c, g, off, 0)
+        for x in (0, 4095):
+            worst = max(worst, abs((16 * x - c.vmon_o) * c.vmon_k) + 65536)
+result(least=least, errs=errs, worst=worst, bound=stim._vmon_product_max(least))
+""")
+    r = res[0]
+    assert 500 <= r["least"] <= 700  # about 611 with the accepted gain and offset windows
+    assert all(e and "VMON_UV_PER_COUNT must be >= %d" % r["least"] in e for e in r["errs"])
+    assert r["worst"] <= r["bound"] < 2 ** 30
+
+
+def test_a_board_reporting_more_samples_than_its_window_is_read_within_the_window():
+    """_measure trusts the board's sample count only up to the capture window (review: a
+    count past it read the heap below the buffer as ADC counts)."""
+    _, res, _ = run_fw(SETUP + """
+s, board, clock = make('steady')
+c = s.chans[0]
+w = len(c.adc)  # the capture window
+for k in range(w):
+    c.adc[k] = 1000
+c.n_samples = w
+s._measure(c)
+at_w = c.vp_raw
+c.n_samples = 4 * w
+s._measure(c)
+result(at_w=at_w, past=c.vp_raw)
+""")
+    r = res[0]
+    assert r["at_w"] == r["past"] == 1000 * 27000 // 1000
