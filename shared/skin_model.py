@@ -41,6 +41,7 @@ SKIN_CP_MIN_PF = const(100)
 SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 # a jump on the skin model raises the charge by at most 2**this paper steps
 FAST_MODEL_RAISE_LOG2 = const(4)
+FAST_MODEL_RP_RISE_LOG2 = const(3)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -738,9 +739,20 @@ class SkinModel:
         if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
+        s_k = c.status
         st = from_q(c, q16)
         _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
-        self.predicted_rp_ohm = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        if q16 > base and rp - rp_ohm > rp_ohm >> FAST_MODEL_RP_RISE_LOG2 and (st & 8) and not (s_k & 8) and not jumped:
+            # a rise the model predicts moves Rp by more than 1/8: half of it now (halved again
+            # if still too far); the next pulse re-anchors the model on what that one reads
+            q16 = base + ((q16 - base) >> 1)
+            c.i_ua = i_k
+            c.t_us = t_k
+            st = from_q(c, q16)
+            _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)
+            rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        self.predicted_rp_ohm = rp
         self.jumped = 1
         if c.model_jumps < _SAT30:
             c.model_jumps += 1
