@@ -34,11 +34,11 @@ from fixmath import frac12, muldiv
 # the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE curve, in Q.12
 # (0.45: the current exponent beta >= 0.5 less the series resistance)
 FAST_ELASTICITY_Q12 = const(1843)
-# a large step down on a secant: G from the pair's arc elasticity times this / 8 (1.25),
+# a large step down on a secant: G from the pair's arc elasticity times this / 8 (1.875),
 # at most _G_LOWER_MAX (docs/controller.md, "MODE_FAST": the elasticity grows as the charge
 # falls, so the chord under-predicts the fall of Rp and the step lands above the target;
-# a larger stretch lands further below it, at a current above the settled one)
-FAST_LOWER_STRETCH_Q3 = const(10)
+# a stretch this large lands below it on some skins, at a current above the settled one)
+FAST_LOWER_STRETCH_Q3 = const(15)
 
 # sensation_core's values: a const() is folded only inside its own module, and importing
 # the core's would be a dictionary lookup per use on the chip (and a circular import);

@@ -146,19 +146,19 @@ def test_repeated_sweeps_fit_reports_its_uncertainty_and_refuses_a_model_it_cann
     assert not skin.fit_sweeps(sweeps(2, 0.0), 1000, 1000).trusted  # 2 sweeps cannot tell their spread
 
 
-def test_on_the_realistic_board_steps_down_no_longer_surge():
+def test_on_the_realistic_board_no_step_surges_after_the_first_correction():
     """Issue 13, deliverable 5 on 16 unseen electrodes read through the realistic board (with
     the self-test correction and the chip's capture and end-of-pulse read): with the averaged,
-    trusted model no step has a felt mQ more than 5 % above its target after the first
-    corrected pulse, and without a model at most one, by at most 10 % (before the stretched
-    secant on a step down: 3 and 10 such steps here, up to +29 %; over 30 electrodes, 105
-    steps: 7 and 20, up to +35 % -> 3 and 5, up to +9.5 %: docs/performance.md). Every step
-    gets within 1 % of the felt target, and the controller reaches 1 % of its measured target
-    in a median of <= 2 pulses with the model. (The goal's 90th percentile of 2 pulses to 1 %
-    of the felt target does not hold yet: 6 here, 5 before.)"""
+    trusted model and without a model, no step has a felt mQ more than 5 % above its target
+    after the first corrected pulse (before the stretched secant on a step down: 3 and 10 such
+    steps here, up to +29 %; over 30 electrodes, 105 steps: 7 and 20 -> 0 and 0,
+    docs/performance.md, which also has its cost: a current above the settled one on more
+    steps). Every step gets within 1 % of the felt target, and the controller reaches 1 % of
+    its measured target in a median of <= 2 pulses with the model. (The goal's 90th
+    percentile of 2 pulses to 1 % of the felt target does not hold yet: 6 here, 5 before.)"""
     res, trust, _ = bench.study(16, "real", 10, True)
     avg, free = res["fast, averaged sweeps + trust"], res["fast, no model"]
     assert max(avg["surge"]) <= 0.05, max(avg["surge"])
-    assert sum(s > 0.05 for s in free["surge"]) <= 1 and max(free["surge"]) <= 0.10, sorted(free["surge"])[-3:]
+    assert max(free["surge"]) <= 0.05, max(free["surge"])
     assert max(avg["settle"]) < 10**6 and max(free["settle"]) < 10**6  # every step within 1 % of the felt target
     assert sorted(avg["seen"])[len(avg["seen"]) // 2] <= 2  # median pulses to 1 % of the measured target
