@@ -212,10 +212,12 @@ def newton(c, qf, q_k, rp_ohm):
     if step > 0:  # more charge: at most 2 (secant) or 4 (prior) paper steps: overshoot is felt
         if step < 0x4000000 and jump > step << up:
             q_new = base + (step << up)
-    else:  # less charge: at most 4 paper steps, and never below Q_k/4
+    else:  # less charge: at most 4 paper steps, and not below Q_k/4 unless the paper's step is
         lo = base >> 2
         if -step < 0x8000000 and base + (step << 2) > lo:
             lo = base + (step << 2)
+        if lo > qf:  # (never more charge than the paper's step)
+            lo = qf
         if q_new < lo:
             q_new = lo
     if q_new <= 0:
