@@ -34,6 +34,11 @@ from fixmath import frac12, muldiv
 # the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE curve, in Q.12
 # (0.45: the current exponent beta >= 0.5 less the series resistance)
 FAST_ELASTICITY_Q12 = const(1843)
+# a large step down on a secant: G from the pair's arc elasticity times this / 8 (1.875),
+# at most _G_LOWER_MAX (docs/controller.md, "MODE_FAST": the elasticity grows as the charge
+# falls, so the chord under-predicts the fall of Rp and the step lands above the target;
+# a stretch this large lands below it on some skins, at a current above the settled one)
+FAST_LOWER_STRETCH_Q3 = const(15)
 
 # sensation_core's values: a const() is folded only inside its own module, and importing
 # the core's would be a dictionary lookup per use on the chip (and a circular import);
@@ -45,6 +50,8 @@ _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
 _NO_G = const(0x8000)  # "no estimate of the loop gain"
+_G_MAX = const(3891)  # 0.95 in Q.12: the largest G a step takes (no stable fixed point above)
+_G_LOWER_MAX = const(3072)  # 0.75: the largest G the lowering stretch sets (1/(1 - G) <= 4)
 
 
 class Pulse:
@@ -168,21 +175,35 @@ def newton(c, qf, q_k, rp_ohm):
         elif g > 3891:
             return qf
         up = 2  # the prior's step does not pass the fixed point: at most 4 paper steps
+    if up == 1 and g > 0 and qf - (q_k << 4) < -(q_k >> 1):
+        # a step down by more than Q_k/32 on a secant: the skin's elasticity grows as the
+        # charge falls, so the chord through the two pulses under-predicts the fall of Rp
+        # below Q_k (a felt surge). G from the pair's arc elasticity at Q_k, stretched:
+        # G = k e_arc mQ Rp_k / Q_k, e_arc = (dRp / (Rp_k + Rp_b)) / (dQ / (Q_k + Q_b))
+        qb = before.q_pc
+        r = 0x21000 if qb >> 5 >= q_k else frac12(q_k + qb, q_k)  # (Q_k + Q_b) / Q_k, Q.12, <= 33
+        x = (((g * r) >> 12) * frac12(rp_ohm, rp_ohm + before.rp_ohm)) >> 12
+        x = (x * FAST_LOWER_STRETCH_Q3) >> 3
+        if x > g:
+            g = x if x < _G_LOWER_MAX else _G_LOWER_MAX
     lq = qf >> 4  # L(Rp_k) in pC
     gq = (q_k >> 12) * g + (((q_k & 0xFFF) * g) >> 12)  # G Q_k in pC
     n = lq - gq
-    if n <= 0:
-        return qf
-    den = 4096 - g  # (1 - G) in Q.12, in [205, 10240]
-    h = n // den
-    if h > c.q_max_pc >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
-        q_new = c._q_max_q4 + 1  # _from_q clamps and flags it
+    if n <= 0:  # Q* <= 0: a step down as far as the cap below allows, else the paper's
+        if g <= 0 or qf >= q_k << 4:
+            return qf
+        q_new = 0
     else:
-        q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < q_max + 2**12
-        if q_new > c.q_max_pc:
-            q_new = c._q_max_q4 + 1
+        den = 4096 - g  # (1 - G) in Q.12, in [205, 10240]
+        h = n // den
+        if h > c.q_max_pc >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
+            q_new = c._q_max_q4 + 1  # _from_q clamps and flags it
         else:
-            q_new = q_new << 4
+            q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < q_max + 2**12
+            if q_new > c.q_max_pc:
+                q_new = c._q_max_q4 + 1
+            else:
+                q_new = q_new << 4
     base = q_k << 4
     step = qf - base  # the paper's step, 1/16 pC
     jump = q_new - base
@@ -191,8 +212,14 @@ def newton(c, qf, q_k, rp_ohm):
     if step > 0:  # more charge: at most 2 (secant) or 4 (prior) paper steps: overshoot is felt
         if step < 0x4000000 and jump > step << up:
             q_new = base + (step << up)
-    elif -step < 0x8000000 and -jump > -(step << 2):  # less charge: at most 4 paper steps
-        q_new = base + (step << 2)
+    else:  # less charge: at most 4 paper steps, and not below Q_k/4 unless the paper's step is
+        lo = base >> 2
+        if -step < 0x8000000 and base + (step << 2) > lo:
+            lo = base + (step << 2)
+        if lo > qf:  # (never more charge than the paper's step)
+            lo = qf
+        if q_new < lo:
+            q_new = lo
     if q_new <= 0:
         return qf
     return q_new

@@ -41,6 +41,8 @@ SKIN_CP_MIN_PF = const(100)
 SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 # a jump on the skin model raises the charge by at most 2**this paper steps
 FAST_MODEL_RAISE_LOG2 = const(4)
+# a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
+FAST_MODEL_RP_RISE_LOG2 = const(3)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -54,6 +56,7 @@ _ROOT_WORK = const(4)
 _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
+_ST_T_MAX = const(0x008)  # sensation_core.ST_T_MAX
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -684,6 +687,8 @@ class SkinModel:
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
         step: never the larger hydration answer nor a search's unfinished value).
+        A fresh rise into the duration ceiling that the model predicts to raise Rp by more
+        than 1/8 is halved (docs/controller.md, rule 6).
         q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
         with the bounds (sensation_core._from_q)."""
         v = self.v
@@ -738,9 +743,23 @@ class SkinModel:
         if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
+        s_k = c.status
         st = from_q(c, q16)
         _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
-        self.predicted_rp_ohm = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        if (q16 > base and not jumped and (st & _ST_T_MAX) and not (s_k & _ST_T_MAX)
+                and rp - rp_ohm > rp_ohm >> FAST_MODEL_RP_RISE_LOG2):
+            # a fresh rise (the model not yet checked on this skin: the pulse just measured
+            # was no model jump) that enters the duration ceiling, where the model moves I at
+            # t_max, and predicts Rp to rise by more than 1/2**FAST_MODEL_RP_RISE_LOG2: half of
+            # the rise now; the next pulse re-anchors the model (and refits Cp) on its reading
+            q16 = base + ((q16 - base) >> 1)
+            c.i_ua = i_k
+            c.t_us = t_k
+            st = from_q(c, q16)
+            _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)
+            rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+        self.predicted_rp_ohm = rp
         self.jumped = 1
         if c.model_jumps < _SAT30:
             c.model_jumps += 1

@@ -146,19 +146,19 @@ def test_repeated_sweeps_fit_reports_its_uncertainty_and_refuses_a_model_it_cann
     assert not skin.fit_sweeps(sweeps(2, 0.0), 1000, 1000).trusted  # 2 sweeps cannot tell their spread
 
 
-def test_on_the_realistic_board_the_averaged_trusted_model_surges_less_than_one_sweep_sent_as_is():
-    """Issue 13, deliverable 5 on unseen electrodes read through the realistic board (with
-    the self-test correction and the chip's capture and end-of-pulse read): averaging 10
-    sweeps and the host's trust check give no more steps with a felt surge above 5 % after
-    the first corrected pulse than one sweep sent as is, every step gets within 1 % of the
-    felt target (before issue 13's capture 24-41 of 103 steps never did), and the controller
-    reaches 1 % of its measured target in a median of <= 4 pulses on these 16 electrodes
-    (over 30 electrodes, 105 steps: surging steps 7 against 10, felt reach median 2:
-    docs/performance.md; fewer electrodes are too few to compare the surges: the first 8
-    have 2 against 1, the first 12 and 16 have 3 against 3). (The goal, no such surge at
-    all and a 90th percentile of 2, does not hold yet.)"""
+def test_on_the_realistic_board_no_step_surges_after_the_first_correction():
+    """Issue 13, deliverable 5 on 16 unseen electrodes read through the realistic board (with
+    the self-test correction and the chip's capture and end-of-pulse read): with the averaged,
+    trusted model and without a model, no step has a felt mQ more than 5 % above its target
+    after the first corrected pulse (before the stretched secant on a step down: 3 and 10 such
+    steps here, up to +29 %; over 30 electrodes, 105 steps: 7 and 20 -> 0 and 0,
+    docs/performance.md, which also has its cost: a current above the settled one on more
+    steps). Every step gets within 1 % of the felt target, and the controller reaches 1 % of
+    its measured target in a median of <= 2 pulses with the model. (The goal's 90th
+    percentile of 2 pulses to 1 % of the felt target does not hold yet: 6 here, 5 before.)"""
     res, trust, _ = bench.study(16, "real", 10, True)
-    avg, one = res["fast, averaged sweeps + trust"], res["fast, 1 sweep (sent as is)"]
-    assert sum(s > 0.05 for s in avg["surge"]) <= sum(s > 0.05 for s in one["surge"])
-    assert max(avg["settle"]) < 10**6 and max(one["settle"]) < 10**6  # every step within 1 % of the felt target
-    assert sorted(avg["seen"])[len(avg["seen"]) // 2] <= 4  # median pulses to 1 % of the measured target
+    avg, free = res["fast, averaged sweeps + trust"], res["fast, no model"]
+    assert max(avg["surge"]) <= 0.05, max(avg["surge"])
+    assert max(free["surge"]) <= 0.05, max(free["surge"])
+    assert max(avg["settle"]) < 10**6 and max(free["settle"]) < 10**6  # every step within 1 % of the felt target
+    assert sorted(avg["seen"])[len(avg["seen"]) // 2] <= 2  # median pulses to 1 % of the measured target
