@@ -62,6 +62,22 @@ def core_mpy_dir(tmp_path_factory, mpy_cross) -> Path:
     return d
 
 
+# MicroPython: run f(n) with the heap locked; returns (f's result, the MemoryError or None).
+# An allocation inside raises MemoryError (toolchain.md); scripts append this and call it.
+UNDER_HEAP_LOCK = """
+
+def under_heap_lock(f, n):
+    r, err = 0, None  # (made before the lock)
+    micropython.heap_lock()
+    try:
+        r = f(n)
+    except MemoryError as e:
+        err = e
+    micropython.heap_unlock()
+    return r, err
+"""
+
+
 def run_mp(micropython: str, script: Path, path: list[Path], stdin: str = "", timeout: float = 120, args=()):
     env = dict(os.environ, MICROPYPATH=os.pathsep.join(str(p) for p in path))
     return subprocess.run(

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 import sensation_core as sc
 
-from conftest import ROOT, SHARED, compile_mpy, run_mp
+from conftest import ROOT, SHARED, UNDER_HEAP_LOCK, compile_mpy, run_mp
 from strategies import scenario, skin_model
 
 sys.path.insert(0, str(ROOT / "tests"))
@@ -114,15 +114,10 @@ def loop(N):
         n += 1
     return n
 
+""" + UNDER_HEAP_LOCK + """
 
 def main():
-    n, err = 0, None
-    micropython.heap_lock()
-    try:
-        n = loop(10000)
-    except MemoryError as e:
-        err = e
-    micropython.heap_unlock()
+    n, err = under_heap_lock(loop, 10000)
     print("updates", n, "error", err, "model_jumps", c.model_jumps)
 
 

@@ -15,7 +15,7 @@ import fixmath
 import sensation_core as sc
 import skin_model
 
-from conftest import ROOT, SHARED, run_mp
+from conftest import ROOT, SHARED, UNDER_HEAP_LOCK, run_mp
 from strategies import scenario
 
 COPIES = {
@@ -156,14 +156,9 @@ def frame(n):
         k += 1
     return k
 
+""" + UNDER_HEAP_LOCK + """
 
-n, err = 0, None  # (globals made before the lock)
-micropython.heap_lock()
-try:
-    n = frame(600)
-except MemoryError as e:
-    err = e
-micropython.heap_unlock()
+n, err = under_heap_lock(frame, 600)
 print("frames", n, "error", err)
 """
 
