@@ -47,12 +47,14 @@ def steadytouch(*args, **kw) -> subprocess.Popen:
                             env=dict(os.environ), **kw)
 
 
-def pull_all(pylsl, source_id: str, proc: subprocess.Popen, max_s: float = 60.0):
-    """Resolve the telemetry and marker streams of one source, pull until the process ends
-    (and a moment after); (telemetry info XML, samples, timestamps, markers [(text, ts)])."""
-    tel = pylsl.resolve_byprop("source_id", f"{source_id}-telemetry", 1, 20)
-    mk = pylsl.resolve_byprop("source_id", f"{source_id}-markers", 1, 20)
-    assert tel and mk, f"streams of {source_id} not found"
+def pull_all(pylsl, source_id: str, proc: subprocess.Popen, max_s: float = 60.0, resolve_s: float = 20.0):
+    """Resolve the telemetry and marker streams of one source (within resolve_s: the outlets
+    open once the device answered, which on emu:// is after the emulated Pico booted), pull
+    until the process ends (and a moment after); (telemetry info XML, samples, timestamps,
+    markers [(text, ts)])."""
+    tel = pylsl.resolve_byprop("source_id", f"{source_id}-telemetry", 1, resolve_s)
+    mk = pylsl.resolve_byprop("source_id", f"{source_id}-markers", 1, resolve_s)
+    assert tel and mk, f"streams of {source_id} not found in {resolve_s} s (the process: {proc.poll()})"
     ti, mi = pylsl.StreamInlet(tel[0]), pylsl.StreamInlet(mk[0])
     ti.open_stream(10)
     mi.open_stream(10)

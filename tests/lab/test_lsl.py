@@ -179,7 +179,9 @@ def test_record_lsl_on_the_emulated_chip(lsl, tmp_path):
     csv = tmp_path / "emu.csv"
     p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "120", "--arm", "--seconds", "6", "--device", url)
     try:
-        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p, max_s=150)
+        # the outlets open after the emulated Pico booted and answered: 20 s was too short once
+        # in a fresh-clone CI run under load (--lsl-wait 120 keeps the device waiting that long)
+        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p, max_s=150, resolve_s=120)
         out, err = p.communicate(timeout=60)
     finally:
         p.kill() if p.poll() is None else None
