@@ -708,8 +708,9 @@ class SkinModel:
         v[_V_LS] = ls + _V_BIAS
         lq_k = v[_V_LQK]
         q16 = _law_q(v, lq_k)
-        if q16 == NOROOT and not v[_V_CUT] and self.lc != self.lc_set:
-            # no fixed point on the model as refitted: the fitted Cp back, anchored anew
+        if q16 == NOROOT and not v[_V_CUT] and self.lc > self.lc_set:
+            # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
+            # passes 1): the fitted Cp back, anchored anew (docs/controller.md, rule 4)
             self._set_lc(self.lc_set)
             ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)
             if ls == NOROOT:
