@@ -708,6 +708,16 @@ class SkinModel:
         v[_V_LS] = ls + _V_BIAS
         lq_k = v[_V_LQK]
         q16 = _law_q(v, lq_k)
+        if q16 == NOROOT and not v[_V_CUT] and self.lc > self.lc_set:
+            # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
+            # passes 1): the fitted Cp back, anchored anew (docs/controller.md, rule 4)
+            self._set_lc(self.lc_set)
+            ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)
+            if ls == NOROOT:
+                return -2 if v[_V_CUT] else -1
+            self.ls = ls
+            v[_V_LS] = ls + _V_BIAS
+            q16 = _law_q(v, lq_k)
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
         if q16 > q_k << 4 and not jumped and p0rp > 0:
