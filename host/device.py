@@ -190,5 +190,11 @@ class Device:
         return self.command(self.cmds.set_vmon(ch, gain_ppm, offset_mv, store, dac_gain_ppm), timeout_s=max(
             5.0, getattr(self.t, "answer_s", 2.0)))
 
+    def set_vmon_all(self, values, store=False):
+        """Every channel's correction in one command ([(gain_ppm, offset_mv, dac_gain_ppm)] per
+        channel): the device writes its flash once and applies all, or changes nothing."""
+        return self.command(self.cmds.set_vmon_all(values, store), timeout_s=max(
+            5.0, getattr(self.t, "answer_s", 2.0)))
+
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS):
         return self.command(self.cmds.keepalive(timeout_ms))
