@@ -152,7 +152,7 @@ RES_STORE_FAILED = const(9)  # SET_VMON: the board could not write its flash (no
 # field), a failed flash write with RES_STORE_FAILED: nothing changes.
 # The windows are what a healthy board can need (docs/hardware.md, "The accepted
 # window"): the monitor's gain (the whole path's when no scope separated the
-# DAC's) 0.91-1.09, its offset +-1.2 V at the electrodes, the DAC's gain 0.97-1.03.
+# DAC's) 0.91-1.09, its offset +-1.2 V at the electrodes, the DAC's gain 0.965-1.035.
 VMON_APPLY = const(0)
 VMON_STORE = const(1)
 VMON_STRIDE = const(12)
@@ -160,8 +160,8 @@ VMON_GAIN_PPM_MIN = const(910000)
 VMON_GAIN_PPM_MAX = const(1090000)
 VMON_OFFSET_MV_MIN = const(-1200)
 VMON_OFFSET_MV_MAX = const(1200)
-VMON_DAC_PPM_MIN = const(970000)
-VMON_DAC_PPM_MAX = const(1030000)
+VMON_DAC_PPM_MIN = const(965000)
+VMON_DAC_PPM_MAX = const(1035000)
 # what the board's flash held at boot (REP_INFO O_INFO_VMON, REP_CAL O_CAL_VMON_STATE)
 VMON_NONE = const(0)  # no correction file: every monitor uncorrected
 VMON_LOADED = const(1)  # the file was read and applied

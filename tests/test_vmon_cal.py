@@ -76,7 +76,7 @@ def test_set_vmon_checks_everything_before_anything_changes_and_get_info_reads_i
         # every channel in one command (CH_ALL): channel 1's words refused -> channel 0 untouched too
         "all_ch1_gain": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1012000, 150, 0), (1090001, 0, 0)]),
                          hp.RES_OUT_OF_RANGE, hp.O_ARG + 4 + hp.VMON_STRIDE),
-        "all_ch1_dac": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1012000, 150, 0), (0, 0, 1030001)]),
+        "all_ch1_dac": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1012000, 150, 0), (0, 0, hp.VMON_DAC_PPM_MAX + 1)]),
                         hp.RES_OUT_OF_RANGE, hp.O_ARG + 12 + hp.VMON_STRIDE),
         "all_ch2_words": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1012000, 150, 0), (0, 0, 0),
                                                                             (0, 0, 1000000)]),
