@@ -27,7 +27,13 @@ SEQ_MOD = 1 << 30
 
 
 class DeviceError(Exception):
-    """The device refused a command (or did not answer); the message says which and why."""
+    """The device refused a command (or did not answer); the message says which and why.
+    refused: the device answered with an error code (so the command changed nothing);
+    False when no answer came (whether it was carried out is unknown)."""
+
+    def __init__(self, message: str, refused: bool = False):
+        super().__init__(message)
+        self.refused = refused
 
 
 class Device:
@@ -153,7 +159,8 @@ class Device:
                 not isinstance(rep, Ack) or rep.command == report[0]
             ):
                 if not rep.ok:
-                    raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}")
+                    raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}",
+                                      refused=True)
                 self.cmds.applied(report)  # a new rate or t_max: the host's frame check follows it
                 return rep
             self._pending.append(rep)

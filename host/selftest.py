@@ -5,8 +5,9 @@ The self-test pulses each channel across currents and widths (open loop, a few
 pulses per point), fits  Vp_measured = G (I R) + offset  by least squares
 (numpy), reports the linearity (residuals) and the worst Rp error before and
 after the correction, and stores the correction on the device itself, the same
-way on every transport: CMD_SET_VMON (hid_protocol) with VMON_STORE makes the
-firmware write `vmon_cal.txt` to its own flash (the rp2 board's littlefs; the
+way on every transport, all channels or none: one CMD_SET_VMON (hid_protocol)
+to every channel (CH_ALL) with VMON_STORE makes the firmware check them all,
+write `vmon_cal.txt` to its own flash once (the rp2 board's littlefs; the
 simulated board's flash folder, simrun.sim_flash_dir) and apply it; GET_INFO
 reads it back; the firmware reads the file at every boot. The raw monitor is
 measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
@@ -235,10 +236,10 @@ def store_on_device(d, fits: list[ChannelFit], n_channels: int | None = None) ->
         else:
             by_ch = sorted(fits, key=lambda f: f.channel)
             d.set_vmon_all([(f.gain_ppm, round(f.offset_mv), f.dac_gain_ppm) for f in by_ch], store=True)
-    except DeviceError as e:
-        raise SelfTestError(f"the device refused the store ({e}): nothing was stored, every channel keeps the "
-                            "correction it had") from None
-    except TransportError as e:
+    except (DeviceError, TransportError) as e:
+        if isinstance(e, DeviceError) and e.refused:  # answered with an error code: the device changed nothing
+            raise SelfTestError(f"the device refused the store ({e}): nothing was stored, every channel keeps the "
+                                "correction it had") from None
         raise SelfTestError(f"the device stopped answering during the store ({e}): the store is one command, so "
                             "it holds either every channel's new correction or every old one; `steadytouch info` "
                             "shows which") from None

@@ -282,6 +282,21 @@ def test_store_sends_one_command_for_every_channel_and_refuses_a_partial_set():
     assert [c[0] for c in d.calls] == ["one"]
     with pytest.raises(st.SelfTestError, match="one channel or every channel"):
         st.store_on_device(Fake(), [fits[1], fits[2]], 4)
+    from steadytouch.device import DeviceError
+
+    class Silent(Fake):  # the command went out, no answer came: the device did all of it or none
+        def set_vmon_all(self, values, store=False):
+            raise DeviceError("no answer to 'set_vmon' within 5 s: is the device running?")
+
+    with pytest.raises(st.SelfTestError, match="either every channel's new correction or every old one"):
+        st.store_on_device(Silent(), fits[:2], 2)
+
+    class Refusing(Fake):
+        def set_vmon_all(self, values, store=False):
+            raise DeviceError("set_vmon: value out of range (byte 20)", refused=True)
+
+    with pytest.raises(st.SelfTestError, match="nothing was stored, every channel keeps"):
+        st.store_on_device(Refusing(), fits[:2], 2)
 
 
 @pytest.mark.parametrize("what, limit, inward", [

@@ -394,8 +394,10 @@ os.rmdir({flash!r} + "/vmon_cal.txt.tmp")
 r_ok = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1050000, 200, 0), (1060000, -20, 0)]))
 after_ok = state()
 s2 = board(flash_dir={flash!r})  # a reset
+r_apply = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(0, 0, 0), (1001000, 3, 0)]))  # heap-locked
+applied = state()
 result(before=before, r=[r_bad, d_bad, r_fail, r_ok], after_bad=after_bad, after_fail=after_fail, after_ok=after_ok,
-       text_fail=text_fail,
+       text_fail=text_fail, r_apply=r_apply, applied=applied,
        reset=[[c.vmon_g, c.vmon_off] for c in s2.chans], state=s2.vmon_state)
 """
     _, res, _ = run_fw(body)
@@ -406,3 +408,6 @@ result(before=before, r=[r_bad, d_bad, r_fail, r_ok], after_bad=after_bad, after
     assert r["text_fail"] == old  # the file too
     assert r["after_ok"][0][:2] == [1050000, 200] and r["after_ok"][1][:2] == [1060000, -20]
     assert r["reset"] == [[1050000, 200], [1060000, -20]] and r["state"] == hp.VMON_LOADED
+    # every channel in RAM, inside the heap-locked command section: applied, the flash's values kept
+    assert r["r_apply"] == hp.RES_OK and [a[:3] for a in r["applied"]] == [[0, 0, 0], [1001000, 3, 0]]
+    assert [a[3] for a in r["applied"]] == [[1050000, 200, 0], [1060000, -20, 0]]
