@@ -242,6 +242,7 @@ class SimBoard:
         self.electrodes = electrodes
         self.analog = AnalogPath(cfg, n_channels, ideal, noise_counts)
         self.ideal = ideal
+        self.dac_gain_applied = not ideal  # the ideal board has no DAC: a stored DAC gain changes nothing (GET_INFO)
         self.noise = self.analog.noise
         self.rng = random
         random.seed(seed)

@@ -288,7 +288,10 @@ class Stimulator:
         # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
         vm = getattr(board, "vmon_cal", None)
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
-        self._dac_gain = hasattr(board, "set_dac_gain")  # the board scales its DAC's full scale
+        self._dac_gain = hasattr(board, "set_dac_gain")  # the board takes a DAC gain (SET_VMON) ...
+        # ... and its DAC path applies it (the ideal simulated board has no DAC: it keeps the
+        # commanded current whatever is stored; GET_INFO's INFO_FLAG_DAC_GAIN tells the host)
+        self._dac_applied = self._dac_gain and getattr(board, "dac_gain_applied", True)
         for c in self.chans:
             c.hard_i_d = self.hard_i
             c.hard_q_d = self.hard_q
@@ -757,6 +760,8 @@ class Stimulator:
             b[hp.O_BOARD + k] = name[k]
             k += 1
         b[hp.O_INFO_VMON] = self.vmon_state
+        if self._dac_applied:  # a stored DAC gain scales this board's DAC (else: stored, not applied)
+            b[hp.O_INFO_FLAGS] = hp.INFO_FLAG_DAC_GAIN
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
 
@@ -1009,12 +1014,28 @@ class Stimulator:
             c.vmon_k = 0
             c.vmon_o = 0
 
+    def _vmon_bad(self, r, o):
+        # the OUT byte of the first refused word of one channel's correction at o (its
+        # gain, offset, DAC gain words), or 0 if all are accepted
+        g = hp.get_i32(r, o)
+        off = hp.get_i32(r, o + 4)
+        dac = hp.get_i32(r, o + 8)
+        if g or off:
+            if not hp.VMON_GAIN_PPM_MIN <= g <= hp.VMON_GAIN_PPM_MAX:
+                return o
+            if not hp.VMON_OFFSET_MV_MIN <= off <= hp.VMON_OFFSET_MV_MAX:
+                return o + 4
+        # a DAC gain out of its window, or on a board that cannot scale its DAC: refused
+        if dac and (not self._dac_gain or not hp.VMON_DAC_PPM_MIN <= dac <= hp.VMON_DAC_PPM_MAX):
+            return o + 8
+        return 0
+
     def _set_vmon(self, r, ch):
-        # CMD_SET_VMON (hid_protocol): one channel; every channel disarmed; checked before
-        # anything changes; VMON_STORE writes the board's flash first (outside the heap
-        # lock: the file allocates) and applies only what was written.
-        if ch == hp.CH_ALL:
-            return self._ack(r, hp.RES_BAD_CHANNEL, hp.O_OUT_CH)
+        # CMD_SET_VMON (hid_protocol): one channel, or every channel (CH_ALL: channel k's
+        # words at O_ARG + 4 + VMON_STRIDE k); every channel disarmed; everything checked
+        # before anything changes; VMON_STORE writes the board's flash once, for every
+        # channel addressed (outside the heap lock: the file allocates), and applies only
+        # what was written: a refusal or a failed write changes no channel.
         k = 0
         while k < self.n:
             if self.chans[k].armed:
@@ -1025,19 +1046,24 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
         if r[hp.O_ARG + 1] or r[hp.O_ARG + 2] or r[hp.O_ARG + 3]:
             return self._ack(r, hp.RES_BAD_FORMAT, hp.O_ARG + 1)
-        g = hp.get_i32(r, hp.O_ARG + 4)
-        off = hp.get_i32(r, hp.O_ARG + 8)
-        dac = hp.get_i32(r, hp.O_ARG + 12)
-        if g or off:
-            if not hp.VMON_GAIN_PPM_MIN <= g <= hp.VMON_GAIN_PPM_MAX:
-                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
-            if not hp.VMON_OFFSET_MV_MIN <= off <= hp.VMON_OFFSET_MV_MAX:
-                return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
-        if dac and not hp.VMON_GAIN_PPM_MIN <= dac <= hp.VMON_GAIN_PPM_MAX:
-            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
-        if not self._dac_gain and dac:  # this board cannot scale its DAC: refused, nothing changes
-            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 12)
-        c = self.chans[ch]
+        lo = ch
+        hi = ch + 1
+        step = 0  # one channel: its words at O_ARG + 4
+        if ch == hp.CH_ALL:
+            lo = 0
+            hi = self.n
+            step = hp.VMON_STRIDE
+            o = hp.O_ARG + 4 + step * self.n  # the words of channels this board lacks: 0
+            while o < hp.O_ARG + 4 + step * 4:
+                if r[o]:
+                    return self._ack(r, hp.RES_BAD_CHANNEL, o)
+                o += 1
+        k = lo
+        while k < hi:
+            bad = self._vmon_bad(r, hp.O_ARG + 4 + step * (k - lo))
+            if bad:
+                return self._ack(r, hp.RES_OUT_OF_RANGE, bad)
+            k += 1
         if op == hp.VMON_STORE:
             locked = self.locked
             if locked:  # everything from here allocates (a bound method, the list, the file)
@@ -1045,17 +1071,26 @@ class Stimulator:
             try:
                 store = getattr(self.board, "store_vmon", None)
                 values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
-                values[ch] = (g, off, dac) if g or dac else None
+                for k in range(lo, hi):
+                    o = hp.O_ARG + 4 + step * (k - lo)
+                    g = hp.get_i32(r, o)
+                    dac = hp.get_i32(r, o + 8)
+                    values[k] = (g, hp.get_i32(r, o + 4), dac) if g or dac else None
                 self.board.feed_watchdog()  # a flash write may erase a sector: the full watchdog time for it
-                ok = store is not None and store(values)
+                ok = store is not None and store(values)  # one file for every channel: all or nothing
                 self.board.feed_watchdog()
                 if ok:
-                    c.vmon_stored = values[ch]
+                    for k in range(lo, hi):
+                        self.chans[k].vmon_stored = values[k]
             finally:
                 if locked:
                     self._enter()
             if not ok:
                 return self._ack(r, hp.RES_STORE_FAILED, 0)
             self.vmon_state = hp.VMON_STORED
-        self._vmon_apply(c, g, off, dac)
+        k = lo
+        while k < hi:
+            o = hp.O_ARG + 4 + step * (k - lo)
+            self._vmon_apply(self.chans[k], hp.get_i32(r, o), hp.get_i32(r, o + 4), hp.get_i32(r, o + 8))
+            k += 1
         return self._ack(r, hp.RES_OK, 0)

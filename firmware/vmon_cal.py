@@ -16,6 +16,8 @@ CAL_HEADER = "steadytouch monitor correction v1"
 CAL_FILE = "vmon_cal.txt"
 CAL_GAIN_PPM = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # accepted monitor gain (measured/true) in ppm
 CAL_OFFSET_MV = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)  # accepted monitor offset (electrode-referred mV)
+CAL_DAC_PPM = (hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX)  # accepted DAC gain (delivered/nominal) in ppm
+# (the windows: what a healthy board can need, docs/hardware.md "The accepted window")
 ADC_MAX = 4095
 
 
@@ -45,8 +47,8 @@ def parse(text, n_channels):
             raise ValueError("correction file line %d: gain %d ppm, offset %d mV or DAC gain %d ppm out of range "
                              "[%d, %d] / [%d, %d] / [%d, %d] (or 0)" % (k + 1, g, off, dac, CAL_GAIN_PPM[0],
                                                                         CAL_GAIN_PPM[1], CAL_OFFSET_MV[0],
-                                                                        CAL_OFFSET_MV[1], CAL_GAIN_PPM[0],
-                                                                        CAL_GAIN_PPM[1]))
+                                                                        CAL_OFFSET_MV[1], CAL_DAC_PPM[0],
+                                                                        CAL_DAC_PPM[1]))
         if ch < 0 or ch in seen:  # two values for one channel: which one?
             raise ValueError("correction file line %d: channel %d %s" % (k + 1, ch, "given twice" if ch >= 0
                                                                         else "is negative"))
@@ -62,7 +64,7 @@ def ok(gain_ppm, offset_mv, dac_gain_ppm):
     if gain_ppm or offset_mv:
         if not (CAL_GAIN_PPM[0] <= gain_ppm <= CAL_GAIN_PPM[1] and CAL_OFFSET_MV[0] <= offset_mv <= CAL_OFFSET_MV[1]):
             return False
-    return dac_gain_ppm == 0 or CAL_GAIN_PPM[0] <= dac_gain_ppm <= CAL_GAIN_PPM[1]
+    return dac_gain_ppm == 0 or CAL_DAC_PPM[0] <= dac_gain_ppm <= CAL_DAC_PPM[1]
 
 
 def load(path, n_channels):

@@ -180,8 +180,13 @@ def cmd_info(a) -> int:
             else:
                 say(f"  ch{ch}: not calibrated")
             if c.vmon_gain_ppm or c.dac_gain_ppm:  # steadytouch selftest's correction
-                say(f"  ch{ch}: monitor gain {c.vmon_gain_ppm / 1e6:.4f} offset {c.vmon_offset_mv:+d} mV, "
-                    f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}")
+                dac = f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}"
+                if c.dac_gain_ppm and not i.dac_gain_applied:  # what the device itself says (GET_INFO's flags)
+                    dac = (f"DAC gain {c.dac_gain_ppm / 1e6:.4f} stored, not applied: this board has no "
+                           "gain-corrected DAC")
+                mon = (f"monitor gain {c.vmon_gain_ppm / 1e6:.4f} offset {c.vmon_offset_mv:+d} mV"
+                       if c.vmon_gain_ppm else "monitor uncorrected")
+                say(f"  ch{ch}: {mon}, {dac}")
         say(f"  correction: {VMON_STATE_WORDS.get(i.vmon_state, i.vmon_state)}")
     return 0
 

@@ -27,7 +27,13 @@ SEQ_MOD = 1 << 30
 
 
 class DeviceError(Exception):
-    """The device refused a command (or did not answer); the message says which and why."""
+    """The device refused a command (or did not answer); the message says which and why.
+    refused: the device answered with an error code (so the command changed nothing);
+    False when no answer came (whether it was carried out is unknown)."""
+
+    def __init__(self, message: str, refused: bool = False):
+        super().__init__(message)
+        self.refused = refused
 
 
 class Device:
@@ -153,7 +159,8 @@ class Device:
                 not isinstance(rep, Ack) or rep.command == report[0]
             ):
                 if not rep.ok:
-                    raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}")
+                    raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}",
+                                      refused=True)
                 self.cmds.applied(report)  # a new rate or t_max: the host's frame check follows it
                 return rep
             self._pending.append(rep)
@@ -188,6 +195,12 @@ class Device:
     def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0):
         """Channel ch's monitor correction and DAC gain, in RAM (store=False) or also in the board's flash."""
         return self.command(self.cmds.set_vmon(ch, gain_ppm, offset_mv, store, dac_gain_ppm), timeout_s=max(
+            5.0, getattr(self.t, "answer_s", 2.0)))
+
+    def set_vmon_all(self, values, store=False):
+        """Every channel's correction in one command ([(gain_ppm, offset_mv, dac_gain_ppm)] per
+        channel): the device writes its flash once and applies all, or changes nothing."""
+        return self.command(self.cmds.set_vmon_all(values, store), timeout_s=max(
             5.0, getattr(self.t, "answer_s", 2.0)))
 
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS):

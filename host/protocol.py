@@ -131,10 +131,16 @@ class Info:
     board: str
     result: int = hp.RES_OK
     vmon_state: int = hp.VMON_NONE  # what the board's flash held at boot (VMON_STATE_WORDS)
+    flags: int = 0  # hp.INFO_FLAG_* (O_INFO_FLAGS)
 
     @property
     def ok(self) -> bool:
         return self.result == hp.RES_OK
+
+    @property
+    def dac_gain_applied(self) -> bool:
+        """The board's DAC path applies a stored DAC gain (the ideal simulated board does not)."""
+        return bool(self.flags & hp.INFO_FLAG_DAC_GAIN)
 
 
 @dataclass(frozen=True)
@@ -220,8 +226,8 @@ def _check_cal(c: CalInfo):
     _need(c.result in RESULT_WORDS, "result", c.result, f"0..{max(RESULT_WORDS)}")
     _need(c.channel <= 3, "channel", c.channel, "0..3")
     _need(c.flags <= 31, "flags", f"0x{c.flags:x}", "bits of 0x1f")
-    _need(c.dac_gain_ppm == 0 or hp.VMON_GAIN_PPM_MIN <= c.dac_gain_ppm <= hp.VMON_GAIN_PPM_MAX, "dac_gain_ppm",
-          c.dac_gain_ppm, f"0 or {hp.VMON_GAIN_PPM_MIN}..{hp.VMON_GAIN_PPM_MAX}")
+    _need(c.dac_gain_ppm == 0 or hp.VMON_DAC_PPM_MIN <= c.dac_gain_ppm <= hp.VMON_DAC_PPM_MAX, "dac_gain_ppm",
+          c.dac_gain_ppm, f"0 or {hp.VMON_DAC_PPM_MIN}..{hp.VMON_DAC_PPM_MAX}")
     _need(c.vmon_gain_ppm == 0 and c.vmon_offset_mv == 0 or (
         hp.VMON_GAIN_PPM_MIN <= c.vmon_gain_ppm <= hp.VMON_GAIN_PPM_MAX
         and hp.VMON_OFFSET_MV_MIN <= c.vmon_offset_mv <= hp.VMON_OFFSET_MV_MAX), "vmon",
@@ -282,7 +288,9 @@ def decode(report: bytes):
             board=raw_board.decode("ascii"),
             result=report[hp.O_RESULT],
             vmon_state=report[hp.O_INFO_VMON],
+            flags=report[hp.O_INFO_FLAGS],
         )
+        _need(not i.flags & ~hp.INFO_FLAG_DAC_GAIN, "flags", f"0x{i.flags:x}", f"bits of 0x{hp.INFO_FLAG_DAC_GAIN:x}")
         _need(i.vmon_state in VMON_STATE_WORDS, "vmon_state", i.vmon_state, f"0..{max(VMON_STATE_WORDS)}")
         _check_info(i)
         return i
@@ -350,6 +358,19 @@ def _channel(ch) -> int:
     if ch not in CHANNELS:
         raise CommandError(f"channel={ch} out of range: 0..3, or {hp.CH_ALL} for all channels")
     return ch
+
+
+def check_vmon(gain_ppm, offset_mv, dac_gain_ppm=0):
+    """One channel's correction as the device accepts it (hid_protocol's windows): (g, off, dac) as ints;
+    CommandError names the value and the accepted range."""
+    gain_ppm, offset_mv = _whole("gain_ppm", gain_ppm), _whole("offset_mv", offset_mv)
+    if gain_ppm or offset_mv:
+        gain_ppm = _in("gain_ppm", gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
+        offset_mv = _in("offset_mv", offset_mv, hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX, "mV")
+    dac_gain_ppm = _whole("dac_gain_ppm", dac_gain_ppm)
+    if dac_gain_ppm:
+        dac_gain_ppm = _in("dac_gain_ppm", dac_gain_ppm, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX, "ppm")
+    return gain_ppm, offset_mv, dac_gain_ppm
 
 
 def check_calibration(i0_ua, t0_us, x_star_ohm, y_star_pc):
@@ -498,20 +519,26 @@ class Commands:
     def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0) -> bytes:
         """Channel ch's voltage-monitor correction (steadytouch selftest); (0, 0): none;
         dac_gain_ppm: its amplitude DAC's gain (0: nominal). store: also written to the
-        board's flash (read at every boot)."""
+        board's flash (read at every boot). Every channel at once: set_vmon_all."""
         ch = self._ch(ch)
         if self.check:
             if ch == hp.CH_ALL:
-                raise CommandError("monitor correction: one channel at a time (0..3), not all")
-            gain_ppm, offset_mv = _whole("gain_ppm", gain_ppm), _whole("offset_mv", offset_mv)
-            if gain_ppm or offset_mv:
-                gain_ppm = _in("gain_ppm", gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
-                offset_mv = _in("offset_mv", offset_mv, hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX, "mV")
-            dac_gain_ppm = _whole("dac_gain_ppm", dac_gain_ppm)
-            if dac_gain_ppm:
-                dac_gain_ppm = _in("dac_gain_ppm", dac_gain_ppm, hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX, "ppm")
+                raise CommandError("monitor correction: one channel (0..3) here; every channel at once: set_vmon_all")
+            gain_ppm, offset_mv, dac_gain_ppm = check_vmon(gain_ppm, offset_mv, dac_gain_ppm)
         op = hp.VMON_STORE if store else hp.VMON_APPLY
         return bytes(hp.cmd_set_vmon(bytearray(64), ch, op, gain_ppm, offset_mv, self._next(), dac_gain_ppm))
+
+    def set_vmon_all(self, values, store=False) -> bytes:
+        """Every channel's correction in one command: values = [(gain_ppm, offset_mv, dac_gain_ppm)
+        per channel, 1..4 of them]; the device checks all, writes its flash once (store) and
+        applies all, or changes nothing."""
+        values = list(values)
+        if self.check:
+            if not 1 <= len(values) <= 4:
+                raise CommandError(f"monitor correction for {len(values)} channels: 1..4")
+            values = [check_vmon(*v) for v in values]
+        op = hp.VMON_STORE if store else hp.VMON_APPLY
+        return bytes(hp.cmd_set_vmon_all(bytearray(64), op, values, self._next()))
 
     def keepalive(self, timeout_ms=hp.KEEPALIVE_DEFAULT_MS) -> bytes:
         """The host is alive; the device stops every channel if silent for timeout_ms (it cannot be switched off)."""

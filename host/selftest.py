@@ -5,8 +5,9 @@ The self-test pulses each channel across currents and widths (open loop, a few
 pulses per point), fits  Vp_measured = G (I R) + offset  by least squares
 (numpy), reports the linearity (residuals) and the worst Rp error before and
 after the correction, and stores the correction on the device itself, the same
-way on every transport: CMD_SET_VMON (hid_protocol) with VMON_STORE makes the
-firmware write `vmon_cal.txt` to its own flash (the rp2 board's littlefs; the
+way on every transport, all channels or none: one CMD_SET_VMON (hid_protocol)
+to every channel (CH_ALL) with VMON_STORE makes the firmware check them all,
+write `vmon_cal.txt` to its own flash once (the rp2 board's littlefs; the
 simulated board's flash folder, simrun.sim_flash_dir) and apply it; GET_INFO
 reads it back; the firmware reads the file at every boot. The raw monitor is
 measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
@@ -42,8 +43,12 @@ import sensation_core as sc
 
 CAL_FILE = "vmon_cal.txt"  # firmware/vmon_cal.py CAL_FILE
 CAL_HEADER = "steadytouch monitor correction v1"  # firmware/vmon_cal.py CAL_HEADER
-GAIN_PPM_RANGE = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # what the firmware accepts (CMD_SET_VMON)
+# what the firmware accepts (CMD_SET_VMON): the windows a healthy board can need (docs/hardware.md,
+# "The accepted window"); a fit outside them is a board out of specification, never stored
+GAIN_PPM_RANGE = (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX)  # the monitor's (or the whole path's) gain
 OFFSET_MV_RANGE = (hp.VMON_OFFSET_MV_MIN, hp.VMON_OFFSET_MV_MAX)
+DAC_PPM_RANGE = (hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX)  # the DAC's gain (--scope)
+WINDOW_DOC = 'docs/hardware.md, "The accepted window"'
 LOAD_OHM_RANGE = (1000, 100_000)
 CURRENTS_UA = (500, 1000, 2000, 3000, 4500, 6000, 8000)
 WIDTHS_US = (100, 300, 1000)
@@ -76,10 +81,21 @@ class ChannelFit:
     def dac_gain_ppm(self) -> int:
         return round(self.dac_gain * 1e6)
 
+    def out_of_window(self) -> str:
+        """'' if every value to store is inside its window, else what is outside and the window."""
+        if not GAIN_PPM_RANGE[0] <= self.gain_ppm <= GAIN_PPM_RANGE[1]:
+            what = "monitor gain" if self.dac_gain else "path gain G"
+            return (f"{what} {self.gain_ppm / 1e6:.4f} outside [{GAIN_PPM_RANGE[0] / 1e6:g}, "
+                    f"{GAIN_PPM_RANGE[1] / 1e6:g}]")
+        if not OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1]:
+            return f"offset {self.offset_mv:+.0f} mV outside [{OFFSET_MV_RANGE[0]}, {OFFSET_MV_RANGE[1]}] mV"
+        if self.dac_gain and not DAC_PPM_RANGE[0] <= self.dac_gain_ppm <= DAC_PPM_RANGE[1]:
+            return (f"DAC gain {self.dac_gain:.4f} outside [{DAC_PPM_RANGE[0] / 1e6:g}, "
+                    f"{DAC_PPM_RANGE[1] / 1e6:g}]")
+        return ""
+
     def in_range(self) -> bool:
-        return (GAIN_PPM_RANGE[0] <= self.gain_ppm <= GAIN_PPM_RANGE[1]
-                and OFFSET_MV_RANGE[0] <= round(self.offset_mv) <= OFFSET_MV_RANGE[1]
-                and (not self.dac_gain or GAIN_PPM_RANGE[0] <= self.dac_gain_ppm <= GAIN_PPM_RANGE[1]))
+        return not self.out_of_window()
 
 
 def plan(load_ohm: int, i_min_ua: int, i_max_ua: int, t_min_us: int, t_max_us: int, q_max_pc: int,
@@ -174,13 +190,14 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
 
 
 def check_range(fits: list[ChannelFit]) -> None:
-    bad = [f for f in fits if not f.in_range()]
-    if bad:
-        f = bad[0]
-        raise SelfTestError(f"ch{f.channel}: gain {f.gain:.4f} or offset {f.offset_mv:.0f} mV out of the accepted "
-                            f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}] / "
-                            f"[{OFFSET_MV_RANGE[0]}, {OFFSET_MV_RANGE[1]}] mV: check the load's value and wiring; "
-                            "nothing was stored")
+    """SelfTestError (one line: the value, its window, what to check) if any value to store is
+    outside the window a healthy board can need: the board is out of specification."""
+    for f in fits:
+        bad = f.out_of_window()
+        if bad:
+            raise SelfTestError(f"ch{f.channel}: {bad}, the window a healthy board can need ({WINDOW_DOC}): the board "
+                                "is out of specification; check the wiring, the load's value (--load-ohm) and the "
+                                "monitor's divider; nothing was stored")
 
 
 def save(fits: list[ChannelFit], folder: Path) -> Path:
@@ -198,13 +215,36 @@ def worst_rp_err(rows, chans, load_ohm: int) -> float:
     return max(float(max(abs(v * 1000.0 / i / load_ohm - 1) for i, _, v in rows[ch])) for ch in chans)
 
 
-def store_on_device(d, fits: list[ChannelFit]) -> list:
-    """CMD_SET_VMON ... VMON_STORE per channel (the firmware writes its flash, then applies
-    it), then GET_INFO reads each back; SelfTestError if the device holds anything else."""
+def store_on_device(d, fits: list[ChannelFit], n_channels: int | None = None) -> list:
+    """Store the correction all or nothing: one channel with CMD_SET_VMON ... VMON_STORE, every
+    channel of the device (n_channels) with one CMD_SET_VMON to CH_ALL, so the firmware checks
+    every channel, writes its one file once (a temporary file renamed over the old) and applies
+    all, or changes nothing. Then GET_INFO reads each back; SelfTestError if the device holds
+    anything else. Checked against the windows before anything is sent."""
+    from .device import DeviceError
+    from .transport import TransportError
+
     check_range(fits)
+    chans = sorted(f.channel for f in fits)
+    if len(fits) > 1 and chans != list(range(n_channels or 0)):
+        raise SelfTestError(f"channels {chans}: the store is one channel or every channel of the device "
+                            f"(0..{(n_channels or 1) - 1})")
+    try:
+        if len(fits) == 1:
+            f = fits[0]
+            d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True, dac_gain_ppm=f.dac_gain_ppm)
+        else:
+            by_ch = sorted(fits, key=lambda f: f.channel)
+            d.set_vmon_all([(f.gain_ppm, round(f.offset_mv), f.dac_gain_ppm) for f in by_ch], store=True)
+    except (DeviceError, TransportError) as e:
+        if isinstance(e, DeviceError) and e.refused:  # answered with an error code: the device changed nothing
+            raise SelfTestError(f"the device refused the store ({e}): nothing was stored, every channel keeps the "
+                                "correction it had") from None
+        raise SelfTestError(f"the device stopped answering during the store ({e}): the store is one command, so "
+                            "it holds either every channel's new correction or every old one; `steadytouch info` "
+                            "shows which") from None
     back = []
     for f in fits:
-        d.set_vmon(f.channel, f.gain_ppm, round(f.offset_mv), store=True, dac_gain_ppm=f.dac_gain_ppm)
         c = d.calibration(f.channel)
         if (c.vmon_gain_ppm, c.vmon_offset_mv, c.vmon_state) != (f.gain_ppm, round(f.offset_mv), hp.VMON_STORED):
             raise SelfTestError(f"ch{f.channel}: the device reads back {c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV "
@@ -279,10 +319,11 @@ def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600
     if not math.isfinite(mv) or mv <= 0:
         raise SelfTestError(f"ch{ch}: scope reading {text!r} must be a positive number of mV (the pulse's plateau)")
     g = mv * 1000.0 / (nominal * load_ohm)
-    if not (GAIN_PPM_RANGE[0] <= round(g * 1e6) <= GAIN_PPM_RANGE[1]):
-        raise SelfTestError(f"ch{ch}: {mv:g} mV on {load_ohm} ohm at {nominal} uA is a DAC gain of {g:.4f}, out of "
-                            f"range [{GAIN_PPM_RANGE[0] / 1e6:g}, {GAIN_PPM_RANGE[1] / 1e6:g}]: check the probe, "
-                            "its scale and the load; nothing was stored")
+    if not (DAC_PPM_RANGE[0] <= round(g * 1e6) <= DAC_PPM_RANGE[1]):
+        raise SelfTestError(f"ch{ch}: {mv:g} mV on {load_ohm} ohm at {nominal} uA is a DAC gain of {g:.4f}, outside "
+                            f"[{DAC_PPM_RANGE[0] / 1e6:g}, {DAC_PPM_RANGE[1] / 1e6:g}], the window a healthy board "
+                            f"can need ({WINDOW_DOC}): the board is out of specification; check the probe, its "
+                            "scale, the load and the gain trim RV1; nothing was stored")
     return g
 
 
@@ -322,19 +363,26 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 d.set_vmon(ch, 0, 0)
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            for line in report_lines(fits, load_ohm):
+                say(line)
+            check_range(fits)  # the path itself outside its window: out of specification, before any scope
             if scope:
                 for f in fits:
                     f.dac_gain = scope_dac_gain(d, f.channel, load_ohm, scope_pulse(load_ohm, info.compliance_mv), ask)
-            for line in report_lines(fits, load_ohm):
-                say(line)
+                for line in report_lines(fits, load_ohm)[len(fits) + 3:]:  # the scope's lines
+                    say(line)
+                check_range(fits)
             worst = max(f.worst_rp_err_before for f in fits)
             if not store:
                 return 0
-            back = store_on_device(d, fits)
+            back = store_on_device(d, fits, info.n_channels)
             done = True
             say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
                 f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
                 + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
+            if scope and not info.dac_gain_applied:
+                say("the DAC gain is stored, not applied: this board has no gain-corrected DAC (its current is the "
+                    "commanded one)")
             check = [(i, t_us) for i, t_us in pts if t_us == max(p[1] for p in pts)]
             if not sim:
                 rows = _measure(d, check, chans, "selftest check", "the correction is stored on the device")

@@ -136,22 +136,32 @@ RES_STORE_FAILED = const(9)  # SET_VMON: the board could not write its flash (no
 
 # ---- the voltage monitor's correction (CMD_SET_VMON; firmware/vmon_cal.py) ----
 # measured mV = gain x true mV + offset; the firmware divides it out of every
-# pulse's peak. OUT: ch = one channel (not CH_ALL); O_ARG u8 op: VMON_APPLY (in
-# RAM until the next reset: the self-test measures the raw monitor with 0, 0)
-# or VMON_STORE (written to the board's flash first, then applied; read at
-# every boot); O_ARG + 4 i32 gain in ppm, O_ARG + 8 i32 offset in mV; gain 0
-# and offset 0 = uncorrected; O_ARG + 12 i32 the amplitude DAC's gain in ppm
-# (delivered / nominal current, found against a scope; 0 = nominal): the board
-# scales the DAC's full scale by it, so the current it reports, the Rp and the
-# hard limits count the current delivered. Refused while any channel is armed (a flash write
-# stalls the loop for tens of ms) with RES_BAD_STATE, outside the ranges with
-# RES_OUT_OF_RANGE, a failed flash write with RES_STORE_FAILED: nothing changes.
+# pulse's peak. OUT: ch = one channel; O_ARG u8 op: VMON_APPLY (in RAM until the
+# next reset: the self-test measures the raw monitor with 0, 0) or VMON_STORE
+# (written to the board's flash first, then applied; read at every boot);
+# O_ARG + 4 i32 gain in ppm, O_ARG + 8 i32 offset in mV; gain 0 and offset 0 =
+# uncorrected; O_ARG + 12 i32 the amplitude DAC's gain in ppm (delivered /
+# nominal current, found against a scope; 0 = nominal): the board scales the
+# DAC's full scale by it, so the current it reports, the Rp and the hard limits
+# count the current delivered. ch = CH_ALL: every channel in one command, channel
+# k's three words at O_ARG + 4 + VMON_STRIDE * k (channel 0's where a one-channel
+# command has them; the words of channels the board lacks must be 0): all checked
+# before anything changes, VMON_STORE writes the one file once (all or nothing).
+# Refused while any channel is armed (a flash write stalls the loop for tens of
+# ms) with RES_BAD_STATE, outside the ranges with RES_OUT_OF_RANGE (detail: the
+# field), a failed flash write with RES_STORE_FAILED: nothing changes.
+# The windows are what a healthy board can need (docs/hardware.md, "The accepted
+# window"): the monitor's gain (the whole path's when no scope separated the
+# DAC's) 0.91-1.09, its offset +-1.2 V at the electrodes, the DAC's gain 0.965-1.035.
 VMON_APPLY = const(0)
 VMON_STORE = const(1)
-VMON_GAIN_PPM_MIN = const(900000)
-VMON_GAIN_PPM_MAX = const(1100000)
-VMON_OFFSET_MV_MIN = const(-2000)
-VMON_OFFSET_MV_MAX = const(2000)
+VMON_STRIDE = const(12)
+VMON_GAIN_PPM_MIN = const(910000)
+VMON_GAIN_PPM_MAX = const(1090000)
+VMON_OFFSET_MV_MIN = const(-1200)
+VMON_OFFSET_MV_MAX = const(1200)
+VMON_DAC_PPM_MIN = const(965000)
+VMON_DAC_PPM_MAX = const(1035000)
 # what the board's flash held at boot (REP_INFO O_INFO_VMON, REP_CAL O_CAL_VMON_STATE)
 VMON_NONE = const(0)  # no correction file: every monitor uncorrected
 VMON_LOADED = const(1)  # the file was read and applied
@@ -214,6 +224,8 @@ O_INFO_KEEPALIVE = const(42)
 O_BOARD = const(44)  # 16 bytes ASCII, NUL padded
 BOARD_LEN = const(16)
 O_INFO_VMON = const(60)  # u8 VMON_NONE / LOADED / BAD / STORED
+O_INFO_FLAGS = const(61)  # u8 board flags (0 from firmware before it): INFO_FLAG_*
+INFO_FLAG_DAC_GAIN = const(0x01)  # the board's DAC path applies a stored DAC gain (else stored, not applied)
 # calibration report (REP_CAL)
 O_CAL_CH = const(12)
 O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected,
@@ -384,6 +396,22 @@ def cmd_set_vmon(b, ch, op, gain_ppm, offset_mv, tag=0, dac_gain_ppm=0):
     put_i32(b, O_ARG + 4, gain_ppm)
     put_i32(b, O_ARG + 8, offset_mv)
     put_i32(b, O_ARG + 12, dac_gain_ppm)
+    seal(b)
+    return b
+
+
+def cmd_set_vmon_all(b, op, values, tag=0):
+    """CMD_SET_VMON to every channel at once: values = [(gain_ppm, offset_mv, dac_gain_ppm)
+    per channel] (at most 4)."""
+    _cmd(b, CMD_SET_VMON, CH_ALL, tag)
+    b[O_ARG] = op
+    k = 0
+    while k < len(values):
+        o = O_ARG + 4 + VMON_STRIDE * k
+        put_i32(b, o, values[k][0])
+        put_i32(b, o + 4, values[k][1])
+        put_i32(b, o + 8, values[k][2])
+        k += 1
     seal(b)
     return b
 

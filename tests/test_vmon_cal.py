@@ -73,14 +73,23 @@ result(raw=rps(board()), corrected=rps(board({corr!r})))
 def test_set_vmon_checks_everything_before_anything_changes_and_get_info_reads_it_back(tmp_path):
     ok = hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, 150)
     cases = {
-        "all": (hp.cmd_set_vmon(bytearray(64), hp.CH_ALL, hp.VMON_APPLY, 1012000, 150), hp.RES_BAD_CHANNEL, hp.O_OUT_CH),
+        # every channel in one command (CH_ALL): channel 1's words refused -> channel 0 untouched too
+        "all_ch1_gain": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1012000, 150, 0), (1090001, 0, 0)]),
+                         hp.RES_OUT_OF_RANGE, hp.O_ARG + 4 + hp.VMON_STRIDE),
+        "all_ch1_dac": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1012000, 150, 0), (0, 0, hp.VMON_DAC_PPM_MAX + 1)]),
+                        hp.RES_OUT_OF_RANGE, hp.O_ARG + 12 + hp.VMON_STRIDE),
+        "all_ch2_words": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1012000, 150, 0), (0, 0, 0),
+                                                                            (0, 0, 1000000)]),
+                          hp.RES_BAD_CHANNEL, hp.O_ARG + 12 + 2 * hp.VMON_STRIDE),
+        "all_store_no_flash": (hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1012000, 150, 0), (990000, -40, 0)]),
+                               hp.RES_STORE_FAILED, 0),
         "ch5": (hp.cmd_set_vmon(bytearray(64), 5, hp.VMON_APPLY, 1012000, 150), hp.RES_BAD_CHANNEL, hp.O_OUT_CH),
         "op": (hp.cmd_set_vmon(bytearray(64), 0, 2, 1012000, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG),
-        "gain_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 899999, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
-        "gain_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1100001, 0), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "gain_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, hp.VMON_GAIN_PPM_MIN - 1, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
+        "gain_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, hp.VMON_GAIN_PPM_MAX + 1, 0), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
         "gain_0": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 0, 150), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
-        "off_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, 2001), hp.RES_OUT_OF_RANGE, hp.O_ARG + 8),
-        "off_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, -2001), hp.RES_OUT_OF_RANGE,
+        "off_hi": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, hp.VMON_OFFSET_MV_MAX + 1), hp.RES_OUT_OF_RANGE, hp.O_ARG + 8),
+        "off_lo": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1012000, hp.VMON_OFFSET_MV_MIN - 1), hp.RES_OUT_OF_RANGE,
                    hp.O_ARG + 8),
         "huge": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1 << 29, 0), hp.RES_OUT_OF_RANGE, hp.O_ARG + 4),
         "store_no_flash": (hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_STORE, 1012000, 150), hp.RES_STORE_FAILED, 0),
@@ -250,3 +259,155 @@ def test_info_shows_the_stored_correction_and_a_corrupt_file(tmp_path):
     (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 1010000 -30 995\n")  # DAC gain out of range
     p = subprocess.run([exe, "info", "--device", "sim://steady"], capture_output=True, text=True, env=env, timeout=60)
     assert p.returncode == 0 and "monitor gain" not in p.stdout and "ignored (monitor uncorrected)" in p.stdout
+
+
+# ---- the accepted windows (docs/hardware.md, "The accepted window"): at, just inside, just outside each limit
+WINDOW_LIMITS = [  # (field, limit, the step inward)
+    ("gain", hp.VMON_GAIN_PPM_MIN, 1), ("gain", hp.VMON_GAIN_PPM_MAX, -1),
+    ("offset", hp.VMON_OFFSET_MV_MIN, 1), ("offset", hp.VMON_OFFSET_MV_MAX, -1),
+    ("dac", hp.VMON_DAC_PPM_MIN, 1), ("dac", hp.VMON_DAC_PPM_MAX, -1),
+]
+FIELD_OFFSET = {"gain": hp.O_ARG + 4, "offset": hp.O_ARG + 8, "dac": hp.O_ARG + 12}
+
+
+def _vmon_args(field, v):
+    return {"gain": (v, 0, 0), "offset": (1000000, v, 0), "dac": (0, 0, v)}[field]
+
+
+def _window_cases():
+    for field, limit, inward in WINDOW_LIMITS:
+        for where, v in (("at", limit), ("inside", limit + inward), ("outside", limit - inward)):
+            yield field, where, v, where != "outside"
+
+
+def test_the_window_on_the_device_at_just_inside_and_just_outside_each_limit():
+    """CMD_SET_VMON (and the stored file's parser, the same vmon_cal.ok) accepts each limit
+    and the value just inside it; just outside: RES_OUT_OF_RANGE naming the field, nothing changed."""
+    cases = list(_window_cases())
+    body = PULSES + f"""
+s = board()
+c = s.chans[0]
+out = []
+for field, where, g, off, dac in {[(f, w, *_vmon_args(f, v)) for f, w, v, _ in cases]!r}:
+    locked(s, hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, 1001000, 7, 0, 0))  # a known state before each
+    r = locked(s, hp.cmd_set_vmon(bytearray(64), 0, hp.VMON_APPLY, g, off, 0, dac))
+    out.append([r, s.tx[hp.O_DETAIL], c.vmon_g, c.vmon_off, c.vmon_dac])
+result(out=out)
+"""
+    _, res, _ = run_fw(body)
+    for (field, where, v, ok), (r, detail, g, off, dac) in zip(cases, res[0]["out"]):
+        want = _vmon_args(field, v)
+        if ok:
+            assert (r, g, off, dac) == (hp.RES_OK, *want), (field, where, v)
+        else:
+            assert (r, detail) == (hp.RES_OUT_OF_RANGE, FIELD_OFFSET[field]), (field, where, v)
+            assert (g, off, dac) == (1001000, 7, 0), (field, where, v)  # nothing changed
+        assert vmon_cal.ok(*want) is ok, (field, where, v)
+        text = vmon_cal.CAL_HEADER + "\n0 %d %d %d\n" % want
+        if ok:
+            assert vmon_cal.parse(text, 1) == [want if want[0] or want[2] else None]
+        else:
+            with pytest.raises(ValueError, match="out of range"):
+                vmon_cal.parse(text, 1)
+
+
+@pytest.mark.parametrize("field, where, v, ok", list(_window_cases()))
+def test_the_window_on_the_host_before_anything_is_sent(field, where, v, ok):
+    """The host's builder (one channel and every channel) accepts what the device accepts and
+    refuses the rest with one line naming the value and the accepted range."""
+    args = _vmon_args(field, v)
+    lo, hi = {"gain": (hp.VMON_GAIN_PPM_MIN, hp.VMON_GAIN_PPM_MAX), "offset": (hp.VMON_OFFSET_MV_MIN,
+              hp.VMON_OFFSET_MV_MAX), "dac": (hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX)}[field]
+    c = Commands()
+    if ok:
+        rep = c.set_vmon(0, args[0], args[1], dac_gain_ppm=args[2])
+        assert (hp.get_i32(rep, hp.O_ARG + 4), hp.get_i32(rep, hp.O_ARG + 8), hp.get_i32(rep, hp.O_ARG + 12)) == args
+        rep = c.set_vmon_all([(1000000, 0, 0), args], store=True)
+        assert hp.get_i32(rep, FIELD_OFFSET[field] + hp.VMON_STRIDE) == v and rep[hp.O_OUT_CH] == hp.CH_ALL
+    else:
+        for build in (lambda: c.set_vmon(0, args[0], args[1], dac_gain_ppm=args[2]),
+                      lambda: c.set_vmon_all([(1000000, 0, 0), args], store=True)):
+            with pytest.raises(CommandError) as e:
+                build()
+            msg = str(e.value)
+            assert f"={v} out of range" in msg and f"{lo}..{hi}" in msg and "\n" not in msg, msg
+
+
+def test_get_info_says_whether_the_board_applies_a_stored_dac_gain(tmp_path):
+    """O_INFO_FLAGS (INFO_FLAG_DAC_GAIN): the realistic board scales its DAC by a stored gain,
+    the ideal one keeps the commanded current whatever is stored (both report the stored value)."""
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n1 0 0 1012300\n")
+    flash = str(tmp_path)
+    reps, res, _ = run_fw(f"""
+out = []
+for ideal in (False, True):
+    bd = SimBoard(cfg, VirtualClock(0), sim_electrode.scenario("steady"), 2, 1, MemoryUSB(True), load_ohm=10000,
+                  ideal=ideal, flash_dir={flash!r})
+    s = stim.Stimulator(bd, VirtualClock(0), cfg, 2, 50, 0)
+    apply(s, hp.cmd_get_info(bytearray(64), 0)); bd.send(s.tx)
+    apply(s, hp.cmd_get_info(bytearray(64), 0, 1)); bd.send(s.tx)
+    dump(bd.usb)
+    out.append([s.tx[hp.O_INFO_FLAGS] if s.tx[0] == hp.REP_INFO else None, bd.set_amplitude(1, 3000)])
+result(out=out)
+""")
+    info = [x for x in reps if isinstance(x, Info)]
+    cal = [x for x in reps if isinstance(x, CalInfo)]
+    assert [i.flags for i in info] == [hp.INFO_FLAG_DAC_GAIN, 0]
+    assert [i.dac_gain_applied for i in info] == [True, False]
+    assert [c.dac_gain_ppm for c in cal] == [1012300, 1012300]
+    real, ideal = res[0]["out"]
+    assert ideal[1] == 3000 and real[1] != 3000  # the ideal board: the commanded current, gain or not
+    b = bytearray(64)
+    b[0] = hp.REP_INFO
+    b[hp.O_FW + 3] = 1
+    for o, v in ((hp.O_HARD_I, 1000), (hp.O_HARD_T, 100), (hp.O_HARD_Q, 100000), (hp.O_LIM, 1), (hp.O_LIM + 2, 1000),
+                 (hp.O_LIM + 4, 20), (hp.O_LIM + 6, 100), (hp.O_LIM + 8, 100000)):
+        hp.put_i32(b, o, v) if o in (hp.O_HARD_Q, hp.O_LIM + 8) else hp.put_u16(b, o, v)
+    from steadytouch.protocol import ProtocolError, decode
+    assert decode(bytes(b)).flags == 0  # firmware before the flag: 0, "not applied" (never claimed)
+    b[hp.O_INFO_FLAGS] = 0x02  # an undefined bit: refused, named
+    with pytest.raises(ProtocolError, match="field flags=0x2"):
+        decode(bytes(b))
+
+
+def test_store_to_every_channel_is_all_or_nothing_on_the_device(tmp_path):
+    """CMD_SET_VMON to CH_ALL with VMON_STORE: one file write for every channel. A refusal of
+    the second channel's values, or a failed flash write, leaves the first channel's stored
+    and applied correction, and the file, as they were."""
+    flash = str(tmp_path)
+    old = vmon_cal.CAL_HEADER + "\n0 1020000 100 0\n1 990000 -50 0\n"
+    (tmp_path / "vmon_cal.txt").write_text(old)
+    body = PULSES + f"""
+s = board(flash_dir={flash!r})
+def state():
+    return [[c.vmon_g, c.vmon_off, c.vmon_dac, c.vmon_stored] for c in s.chans]
+before = state()
+r_bad = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1050000, 200, 0), (1090001, 0, 0)]))
+d_bad = s.tx[hp.O_DETAIL]
+after_bad = state()
+import os
+os.mkdir({flash!r} + "/vmon_cal.txt.tmp")  # the flash write fails (the temporary file cannot be opened)
+r_fail = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1050000, 200, 0), (1060000, 0, 0)]))
+after_fail = state()
+text_fail = open({flash!r} + "/vmon_cal.txt").read()
+os.rmdir({flash!r} + "/vmon_cal.txt.tmp")
+r_ok = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1050000, 200, 0), (1060000, -20, 0)]))
+after_ok = state()
+s2 = board(flash_dir={flash!r})  # a reset
+r_apply = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(0, 0, 0), (1001000, 3, 0)]))  # heap-locked
+applied = state()
+result(before=before, r=[r_bad, d_bad, r_fail, r_ok], after_bad=after_bad, after_fail=after_fail, after_ok=after_ok,
+       text_fail=text_fail, r_apply=r_apply, applied=applied,
+       reset=[[c.vmon_g, c.vmon_off] for c in s2.chans], state=s2.vmon_state)
+"""
+    _, res, _ = run_fw(body)
+    r = res[0]
+    assert r["r"] == [hp.RES_OUT_OF_RANGE, hp.O_ARG + 4 + hp.VMON_STRIDE, hp.RES_STORE_FAILED, hp.RES_OK]
+    assert r["before"][0][:2] == [1020000, 100]
+    assert r["after_bad"] == r["before"] and r["after_fail"] == r["before"]  # channel 0 untouched by either failure
+    assert r["text_fail"] == old  # the file too
+    assert r["after_ok"][0][:2] == [1050000, 200] and r["after_ok"][1][:2] == [1060000, -20]
+    assert r["reset"] == [[1050000, 200], [1060000, -20]] and r["state"] == hp.VMON_LOADED
+    # every channel in RAM, inside the heap-locked command section: applied, the flash's values kept
+    assert r["r_apply"] == hp.RES_OK and [a[:3] for a in r["applied"]] == [[0, 0, 0], [1001000, 3, 0]]
+    assert [a[3] for a in r["applied"]] == [[1050000, 200, 0], [1060000, -20, 0]]

@@ -40,14 +40,17 @@ def _rp(reps, ch):
 def test_stored_on_the_chip_survives_a_reset_and_corrects_rp(chip_host, cfg, tmp_path):
     cmd = Commands()
     chip = chip_host.boot(chip_host.image)
+    # one channel, then every channel in one command (the self-test's all-or-nothing store): the same end state
     sent = [cmd.get_info(), cmd.set_vmon(0, G_PPM, OFF_MV, store=True),
-            cmd.set_vmon(1, 0, 0, store=True, dac_gain_ppm=DAC_PPM), cmd.get_info(0), cmd.get_info(1), cmd.get_info()]
+            cmd.set_vmon_all([(G_PPM, OFF_MV, 0), (0, 0, DAC_PPM)], store=True), cmd.get_info(0), cmd.get_info(1),
+            cmd.get_info()]
     reps = _run(chip, cfg, sent, ms=800)
     acks = [r for r in reps if isinstance(r, Ack)]
     assert [(a.command, a.result) for a in acks] == [(hp.CMD_SET_VMON, hp.RES_OK)] * 2
     info = [r for r in reps if isinstance(r, Info)]
     cal = [r for r in reps if isinstance(r, CalInfo)]
     assert info[0].vmon_state == hp.VMON_NONE and info[1].vmon_state == hp.VMON_STORED
+    assert info[0].dac_gain_applied  # the rp2 board's MCP4822 driver scales its full scale by a stored DAC gain
     assert (cal[0].vmon_gain_ppm, cal[0].vmon_offset_mv, cal[0].flags & hp.CAL_FLAG_VMON) == (G_PPM, OFF_MV, 8)
     assert (cal[1].vmon_gain_ppm, cal[1].flags & hp.CAL_FLAG_VMON) == (0, 0)
     assert (cal[1].dac_gain_ppm, cal[1].flags & hp.CAL_FLAG_DAC, cal[0].dac_gain_ppm) == (DAC_PPM, hp.CAL_FLAG_DAC, 0)
@@ -57,9 +60,14 @@ def test_stored_on_the_chip_survives_a_reset_and_corrects_rp(chip_host, cfg, tmp
     # a reset: the board boots from the flash it wrote
     chip = chip_host.boot(fs)
     assert "steadytouch monitor correction v1\n" in chip.exec("print(open('/vmon_cal.txt').read())")
-    reps = _run(chip, cfg, [cmd.get_info(), cmd.get_info(0)] + _pulses(cmd))
+    # every channel in one command, channel 1's gain outside the window: refused whole, channel 0 as stored
+    refused = bytes(hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1010000, 0, 0), (hp.VMON_GAIN_PPM_MAX + 1, 0, 0)],
+                                        tag=77))
+    reps = _run(chip, cfg, [cmd.get_info(), refused, cmd.get_info(0)] + _pulses(cmd))
     info = [r for r in reps if isinstance(r, Info)]
     cal = [r for r in reps if isinstance(r, CalInfo)]
+    acks = [r for r in reps if isinstance(r, Ack) and r.command == hp.CMD_SET_VMON]
+    assert [(a.result, a.detail) for a in acks] == [(hp.RES_OUT_OF_RANGE, hp.O_ARG + 4 + hp.VMON_STRIDE)]
     assert info[0].vmon_state == hp.VMON_LOADED and (cal[0].vmon_gain_ppm, cal[0].vmon_offset_mv) == (G_PPM, OFF_MV)
     # the emulated monitor is exact (10 kohm reads 10 kohm within its noise): the correction
     # takes 200 mV out and divides by 1.05, as the firmware must
