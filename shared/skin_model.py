@@ -136,12 +136,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         if n < 16:
             return NOROOT
         k = 22
-        while n >= 0x800000:
-            n >>= 1
-            k += 1
-        while n < 0x400000:
-            n <<= 1
-            k -= 1
+        if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+            if n >= 0x4000000:
+                n >>= 4
+                k += 4
+            if n >= 0x1000000:
+                n >>= 2
+                k += 2
+            if n >= 0x800000:
+                n >>= 1
+                k += 1
+        else:
+            if n < 0x80:
+                n <<= 16
+                k -= 16
+            if n < 0x8000:
+                n <<= 8
+                k -= 8
+            if n < 0x80000:
+                n <<= 4
+                k -= 4
+            if n < 0x200000:
+                n <<= 2
+                k -= 2
+            if n < 0x400000:
+                n <<= 1
+                k -= 1
         eu = (n >> 16) - 64
         ea = g2[eu]
         eb = g2[eu + 1]
@@ -217,12 +237,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             if n < 1:
                 n = 1
             k = 22
-            while n >= 0x800000:
-                n >>= 1
-                k += 1
-            while n < 0x400000:
-                n <<= 1
-                k -= 1
+            if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                if n >= 0x4000000:
+                    n >>= 4
+                    k += 4
+                if n >= 0x1000000:
+                    n >>= 2
+                    k += 2
+                if n >= 0x800000:
+                    n >>= 1
+                    k += 1
+            else:
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
             eu = (n >> 16) - 64
             ea = g2[eu]
             eb = g2[eu + 1]
@@ -240,12 +280,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -364,12 +424,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -413,12 +493,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -510,12 +610,32 @@ def _pulse(vv, base: int, i: int, t: int, rp: int):
         if n < 1:
             n = 1
         k = 22
-        while n >= 0x800000:
-            n >>= 1
-            k += 1
-        while n < 0x400000:
-            n <<= 1
-            k -= 1
+        if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+            if n >= 0x4000000:
+                n >>= 4
+                k += 4
+            if n >= 0x1000000:
+                n >>= 2
+                k += 2
+            if n >= 0x800000:
+                n >>= 1
+                k += 1
+        else:
+            if n < 0x80:
+                n <<= 16
+                k -= 16
+            if n < 0x8000:
+                n <<= 8
+                k -= 8
+            if n < 0x80000:
+                n <<= 4
+                k -= 4
+            if n < 0x200000:
+                n <<= 2
+                k -= 2
+            if n < 0x400000:
+                n <<= 1
+                k -= 1
         eu = (n >> 16) - 64
         ea = g2[eu]
         eb = g2[eu + 1]
