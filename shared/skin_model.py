@@ -31,7 +31,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, _LOG_TAB, exp2q, log2q, mul_q16
+from fixmath import _EXP_TAB, _LOG_TAB, log2q
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -771,34 +771,43 @@ class SkinModel:
         v[_V_PROBE + _P_LT] = lt
         return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
-    @micropython.native
+    @micropython.viper
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
-        when within 1/8 ... 2 x the Cp set."""
-        v = self.v
-        b = self.beta_q16
-        z0 = v[_V_BEFORE + _P_LT] + mul_q16(v[_V_BEFORE + _P_LI] - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
-        z1 = v[_V_NOW + _P_LT] + mul_q16(v[_V_NOW + _P_LI] - _L_1MA, b)
-        if z0 > z1:  # (two names, not a tuple: a tuple would be allocated in MicroPython)
+        when within 1/8 ... 2 x the Cp set. (viper: Rs, beta and the pulses from self.v.)"""
+        vv = self.v
+        v = ptr32(vv)
+        b = v[_V_BETA]  # mul_q16(x, beta), inline below (beta >= 0)
+        ma = v[_V_BEFORE + _P_LI] - _L_1MA
+        mc = 0 - ma if ma < 0 else ma
+        my = (((mc >> 10) * b) >> 6) + (((mc & 0x3FF) * b) >> 16)
+        z0 = v[_V_BEFORE + _P_LT] + (0 - my if ma < 0 else my)  # log2 T/tau, less log2 (S Cp / 1e6)
+        ma = v[_V_NOW + _P_LI] - _L_1MA
+        mc = 0 - ma if ma < 0 else ma
+        my = (((mc >> 10) * b) >> 6) + (((mc & 0x3FF) * b) >> 16)
+        z1 = v[_V_NOW + _P_LT] + (0 - my if ma < 0 else my)
+        if z0 > z1:
             p = _V_NOW
             o = _V_BEFORE
         else:
             p = _V_BEFORE
             o = _V_NOW
-        d = v[p + _P_RP] - self.rs_ohm
+        d = v[p + _P_RP] - v[_V_RS]
         if d >= 16:
-            lo = log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
+            lo = int(log2q(d + 2))  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
             kind = _K_TWO + (p << 8) + (o << 16)
-            lr = _root(v, kind, lo, lo + 0x40000, 0)
+            lr = int(_root(vv, kind, lo, lo + 0x40000, 0))
             if lr != NOROOT:
-                _root(v, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
+                _root(vv, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
                 lc = v[_V_LCTWO] - _V_BIAS
-                if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
-                    self._set_lc(lc)
+                lc_set = int(self.lc_set)
+                if lc_set - 0x30000 <= lc and lc <= lc_set + 0x10000:
+                    self.lc = lc  # (_set_lc, inline)
+                    v[_V_LC] = lc + _V_BIAS
 
-    @micropython.native
-    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev, from_q):
+    @micropython.viper
+    def jump(self, qf: int, q_k: int, rp_ohm: int, i_k: int, t_k: int, jumped: int, prev, from_q) -> int:
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
         prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
@@ -810,65 +819,79 @@ class SkinModel:
         A fresh rise into the duration ceiling that the model predicts to raise Rp by more
         than 1/8 is halved (docs/controller.md, rule 6).
         q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
-        with the bounds (sensation_core._from_q)."""
-        v = self.v
-        _pulse(v, _V_NOW, i_k, t_k, rp_ohm)
-        p0rp = prev.rp_ohm
+        with the bounds (sensation_core._from_q). (viper: the model's state from self.v;
+        self.ls and self.lc are kept equal to its words.)"""
+        vv = self.v
+        v = ptr32(vv)
+        _pulse(vv, _V_NOW, i_k, t_k, rp_ohm)
+        p0rp = int(prev.rp_ohm)
         if p0rp > 0:
-            _pulse(v, _V_BEFORE, prev.i_ua, prev.t_us, p0rp)
+            _pulse(vv, _V_BEFORE, int(prev.i_ua), int(prev.t_us), p0rp)
         if jumped and p0rp > 0:
-            miss = rp_ohm - self.predicted_rp_ohm
+            miss = rp_ohm - int(self.predicted_rp_ohm)
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
+            if (miss if miss >= 0 else 0 - miss) > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 self.refit_cp()
-        ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)  # anchor S on the pulse just measured
+        lc = v[_V_LC] - _V_BIAS  # (self.lc)
+        ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
         self.ls = ls  # (self._set_ls(ls), inline: a call is ~10 us on the chip)
         v[_V_LS] = ls + _V_BIAS
         lq_k = v[_V_LQK]
-        q16 = _law_q(v, lq_k)
+        q16 = int(_law_q(vv, lq_k))
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
-        if q16 > q_k << 4 and not jumped and p0rp > 0:
+        if q16 > (q_k << 4) and jumped == 0 and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
-            ls0 = _root(v, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, self.lc)  # and on the one before
+            ls0 = int(_root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
             if ls0 != NOROOT:
                 v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
-                la = _root(v, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0)
+                la = int(_root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
                 if la != NOROOT:
-                    ls1 = self.ls
-                    lc1 = self.lc
-                    ls = ls0 + mul_q16(la, self.beta_q16 - 0x10000)
+                    ls1 = ls
+                    lc1 = lc
+                    mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
+                    ma = 0 - la if la < 0 else la
+                    mc = 0 - mb if mb < 0 else mb
+                    my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+                    if la < 0:
+                        my = my if mb < 0 else 0 - my
+                    elif mb < 0:
+                        my = 0 - my
+                    ls = ls0 + my
+                    lc = lc1 + la
                     self.ls = ls  # (_set_ls, _set_lc inline)
                     v[_V_LS] = ls + _V_BIAS
-                    self.lc = lc1 + la
-                    v[_V_LC] = lc1 + la + _V_BIAS
-                    q2 = _law_q(v, lq_k)
+                    self.lc = lc
+                    v[_V_LC] = lc + _V_BIAS
+                    q2 = int(_law_q(vv, lq_k))
                     if q2 != NOROOT and q2 < q16:
                         q16 = q2
                     else:
-                        self.ls = ls1
-                        v[_V_LS] = ls1 + _V_BIAS
-                        self.lc = lc1
-                        v[_V_LC] = lc1 + _V_BIAS
+                        ls = ls1
+                        lc = lc1
+                        self.ls = ls
+                        v[_V_LS] = ls + _V_BIAS
+                        self.lc = lc
+                        v[_V_LC] = lc + _V_BIAS
             if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
                 return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base
-        if step == 0 or (q16 > base) != (step > 0):
+        if step == 0 or (q16 > base and step < 0) or (q16 <= base and step > 0):
             return -1
-        if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
+        if step > 0 and step < (0x4000000 >> FAST_MODEL_RAISE_LOG2) and q16 - base > (step << FAST_MODEL_RAISE_LOG2):
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
-        s_k = c.status
-        st = from_q(c, q16)
-        _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
-        rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
-        if (q16 > base and not jumped and (st & _ST_T_MAX) and not (s_k & _ST_T_MAX)
-                and rp - rp_ohm > rp_ohm >> FAST_MODEL_RP_RISE_LOG2):
+        s_k = int(c.status)
+        st = int(from_q(c, q16))
+        _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)  # the pulse sent: the model's prediction of its Rp
+        rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
+        if (q16 > base and jumped == 0 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
+                and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
             # was no model jump) that enters the duration ceiling, where the model moves I at
             # t_max, and predicts Rp to rise by more than 1/2**FAST_MODEL_RP_RISE_LOG2: half of
@@ -876,11 +899,12 @@ class SkinModel:
             q16 = base + ((q16 - base) >> 1)
             c.i_ua = i_k
             c.t_us = t_k
-            st = from_q(c, q16)
-            _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)
-            rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
+            st = int(from_q(c, q16))
+            _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)
+            rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
         self.predicted_rp_ohm = rp
         self.jumped = 1
-        if c.model_jumps < _SAT30:
-            c.model_jumps += 1
+        n = int(c.model_jumps)
+        if n < _SAT30:
+            c.model_jumps = n + 1
         return st
