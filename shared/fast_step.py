@@ -58,15 +58,39 @@ _G_MAX = const(3891)  # 0.95 in Q.12: the largest G a step takes (no stable fixe
 _G_LOWER_MAX = const(3072)  # 0.75: the largest G the lowering stretch sets (1/(1 - G) <= 4)
 
 
-class Pulse:
-    """A pulse the controller measured Rp on (c.before: the one before the last)."""
+# the pulse measured before the one just measured (c.before) lives in five words of the
+# controller's int array c._k from _K_B on (sensation_core._K_B): the viper code reads and
+# writes them by ptr32; Pulse gives them names
+_K_B = const(17)
+_B_I = const(0)  # i_ua
+_B_T = const(1)  # t_us
+_B_Q = const(2)  # q_pc = i_ua * t_us
+_B_RP = const(3)  # the Rp measured on it; 0: no such pulse (reset)
+_B_CLEAN = const(4)  # 1: the step computed from it was clean (no fault, no bound)
 
-    def __init__(self):
-        self.i_ua = 0
-        self.t_us = 0
-        self.q_pc = 0  # i_ua * t_us
-        self.rp_ohm = 0  # the Rp measured on it; 0: no such pulse (reset)
-        self.clean = 0  # 1: the step computed from it was clean (no fault, no bound)
+
+def _word(j):
+    def get(self):
+        return self._k[j]
+
+    def put(self, x):
+        self._k[j] = x
+
+    return property(get, put)
+
+
+class Pulse:
+    """A pulse the controller measured Rp on (c.before: the one before the last), as
+    attributes: a view on its words in the controller's int array k (_K_B ...)."""
+
+    def __init__(self, k):
+        self._k = k
+
+    i_ua = _word(_K_B + _B_I)
+    t_us = _word(_K_B + _B_T)
+    q_pc = _word(_K_B + _B_Q)
+    rp_ohm = _word(_K_B + _B_RP)
+    clean = _word(_K_B + _B_CLEAN)
 
 
 def least_elastic(x):
@@ -98,7 +122,7 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     dq = qf - (q_k << 4)  # 1/16 pC
     if (dq if dq >= 0 else 0 - dq) >= (i_k + (0 if ceiling else t_k)) << 3:
         if int(model.on) and q_k > 0:
-            st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c.before, from_q))
+            st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c._k, from_q))  # (c._k: c.before's words)
             if st >= 0:
                 return st
             c.i_ua = i_k  # the measured pulse back (three stores: cheaper than a call)
@@ -158,15 +182,14 @@ def newton(c, qf: int, q_k: int, rp_ohm: int) -> int:
     k = ptr32(c._k)
     g = _NO_G
     up = 1  # a jump that raises the charge: at most 2 paper steps (secant)
-    before = c.before
-    qb = 0  # the pulse before (read when the secant uses it)
+    qb = 0  # the pulse before (c.before; read when the secant uses it)
     rb = 0
-    if int(before.clean):
-        qb = int(before.q_pc)
+    if k[_K_B + _B_CLEAN] != 0:
+        qb = k[_K_B + _B_Q]
         dq = q_k - qb
         adq = dq if dq >= 0 else 0 - dq
         if adq >= 64 and adq >= (q_k >> 5):  # enough excitation for a secant
-            rb = int(before.rp_ohm)
+            rb = k[_K_B + _B_RP]
             dr = rp_ohm - rb
             x = int(muldiv(k[_K_MQN], dr if dr >= 0 else 0 - dr, k[_K_MQD], 0, _MQ_CAP))  # mQ |dRp| (pC)
             if x < adq << 1:  # else |G| >= 2: the linear model is not trustworthy
@@ -247,15 +270,15 @@ def drift(c, q_k: int, rp_ohm: int) -> int:
     is applied to Rp one pulse ahead (the smaller of the two falls, at most Rp/16). Only
     falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm."""
     d_now = 0
-    before = c.before
-    if int(before.clean) and q_k > 0:
-        dq = q_k - int(before.q_pc)
+    k = ptr32(c._k)  # c.before's words
+    if k[_K_B + _B_CLEAN] != 0 and q_k > 0:
+        dq = q_k - k[_K_B + _B_Q]
         adq = dq if dq >= 0 else 0 - dq
         if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
             f = int(frac12(adq, q_k))  # |dQ|/Q in Q.12, < 128
             x = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)
             e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic: e Rp |dQ| / Q
-            d_now = rp_ohm - int(before.rp_ohm) - (e if dq >= 0 else 0 - e)
+            d_now = rp_ohm - k[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
     d_prev = int(c.drift_ohm)
     c.drift_ohm = d_now
     if d_now >= 0 or d_prev >= 0:

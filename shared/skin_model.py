@@ -57,6 +57,9 @@ _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
 _ST_T_MAX = const(0x008)  # sensation_core.ST_T_MAX
+_KB_I = const(17)  # the words of the controller's c._k that hold c.before (fast_step._K_B):
+_KB_T = const(18)  # its I, T and Rp
+_KB_RP = const(20)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -810,7 +813,8 @@ class SkinModel:
     def jump(self, qf: int, q_k: int, rp_ohm: int, i_k: int, t_k: int, jumped: int, prev, from_q) -> int:
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
-        prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
+        prev: the controller's int array c._k, whose words _KB_* hold the pulse before it,
+        c.before, Rp 0 if none). After a model jump
         that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
         the contact hypothesis is also solved and the smaller charge taken. Returns the
         status, or -1 when the model has no answer (the caller goes on without it), -2
@@ -823,10 +827,11 @@ class SkinModel:
         self.ls and self.lc are kept equal to its words.)"""
         vv = self.v
         v = ptr32(vv)
+        pk = ptr32(prev)
         _pulse(vv, _V_NOW, i_k, t_k, rp_ohm)
-        p0rp = int(prev.rp_ohm)
+        p0rp = pk[_KB_RP]
         if p0rp > 0:
-            _pulse(vv, _V_BEFORE, int(prev.i_ua), int(prev.t_us), p0rp)
+            _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
         if jumped and p0rp > 0:
             miss = rp_ohm - int(self.predicted_rp_ohm)
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
