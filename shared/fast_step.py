@@ -53,6 +53,8 @@ _MQ_CAP = const(0x1FFFFFFF)
 _K_QMAX = const(5)  # words of Controller._k: q_max_pc, mQ's numerator (pC) and denominator (ohm)
 _K_MQN = const(12)
 _K_MQD = const(13)
+_V_ON = const(33)  # words of SkinModel.v: skin_model._V_ON, _V_JUMPED
+_V_JUMPED = const(34)
 _NO_G = const(0x8000)  # "no estimate of the loop gain"
 _G_MAX = const(3891)  # 0.95 in Q.12: the largest G a step takes (no stable fixed point above)
 _G_LOWER_MAX = const(3072)  # 0.75: the largest G the lowering stretch sets (1/(1 - G) <= 4)
@@ -115,13 +117,14 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     if rp_at != rp_ohm:
         qf = int(line(c, rp_at))
     model = c.skin
-    jumped = int(model.jumped)
-    model.jumped = 0
+    vm = ptr32(model.v)  # (model.jumped, model.on: words of model.v, skin_model._V_JUMPED, _V_ON)
+    jumped = vm[_V_JUMPED]
+    vm[_V_JUMPED] = 0
     # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
     # where I and T are split for the charge, 1/2 us): the paper's step
     dq = qf - (q_k << 4)  # 1/16 pC
     if (dq if dq >= 0 else 0 - dq) >= (i_k + (0 if ceiling else t_k)) << 3:
-        if int(model.on) and q_k > 0:
+        if vm[_V_ON] != 0 and q_k > 0:
             st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c._k, from_q))  # (c._k: c.before's words)
             if st >= 0:
                 return st

@@ -111,7 +111,10 @@ _P_LT = const(1)  # log2 T (us), Q.16
 _P_RP = const(2)  # the Rp measured on it (ohm)
 _P_RLP = const(3)  # log2 of that Rp
 _P_LS = const(4)  # log2 S with which the model reads it (set for the pulse before), + _V_BIAS
-_V_N = const(33)
+_V_ON = const(33)  # SkinModel.on, .jumped, .predicted_rp_ohm (properties: the words)
+_V_JUMPED = const(34)
+_V_PRED = const(35)
+_V_N = const(36)
 _V_BIAS = const(0x10000000)
 
 
@@ -708,6 +711,16 @@ def _law_q(vv, lq_k: int) -> int:
     return (m + (1 << (21 - n))) >> (22 - n)
 
 
+def _word(j, bias):
+    def get(self):
+        return self.v[j] - bias
+
+    def put(self, x):
+        self.v[j] = x + bias
+
+    return property(get, put)
+
+
 class SkinModel:
     """The model's fitted parameters, the pulses it reads and its last answer. Built once
     by the Controller (`c`: its limits, mE and Eq. 3 are copied from it by limits/law).
@@ -716,17 +729,19 @@ class SkinModel:
 
     def __init__(self, c):
         self.c = c
-        self.on = 0  # 1: a model is set
+        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*); the properties below
+        self.v[_V_LS] = _V_BIAS
+        self.v[_V_LC] = _V_BIAS
         self.rs_ohm = 0  # fitted: series resistance Rs
         self.beta_q16 = 0  # fitted: current exponent beta, Q.16
         self.lc_set = 0  # fitted: log2 Cp (pF) as set
-        self.lc = 0  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
-        self.ls = 0  # log2 S, anchored on the last jump
-        self.jumped = 0  # 1: the pulse just measured was a model jump
-        self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
-        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*)
-        self.v[_V_LS] = _V_BIAS
-        self.v[_V_LC] = _V_BIAS
+
+    # words of self.v as attributes (the viper code reads and writes the words)
+    on = _word(_V_ON, 0)  # 1: a model is set
+    jumped = _word(_V_JUMPED, 0)  # 1: the pulse just measured was a model jump
+    predicted_rp_ohm = _word(_V_PRED, 0)  # the Rp the model predicted for that jump
+    ls = _word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
+    lc = _word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -735,7 +750,7 @@ class SkinModel:
         else:
             self.on = 1
             self.lc_set = log2q(cp_pf)
-            self._set_lc(self.lc_set)
+            self.lc = self.lc_set
         self.rs_ohm = rs_ohm
         self.beta_q16 = beta_q16
         self.v[_V_RS] = rs_ohm
@@ -759,11 +774,6 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
-
-    @micropython.native
-    def _set_lc(self, lc):
-        self.lc = lc
-        self.v[_V_LC] = lc + _V_BIAS
 
     @micropython.native
     def rp(self, ls, lc, li, lt):
@@ -806,8 +816,7 @@ class SkinModel:
                 lc = v[_V_LCTWO] - _V_BIAS
                 lc_set = int(self.lc_set)
                 if lc_set - 0x30000 <= lc and lc <= lc_set + 0x10000:
-                    self.lc = lc  # (_set_lc, inline)
-                    v[_V_LC] = lc + _V_BIAS
+                    v[_V_LC] = lc + _V_BIAS  # (self.lc)
 
     @micropython.viper
     def jump(self, qf: int, q_k: int, rp_ohm: int, i_k: int, t_k: int, jumped: int, prev, from_q) -> int:
@@ -824,7 +833,7 @@ class SkinModel:
         than 1/8 is halved (docs/controller.md, rule 6).
         q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
         with the bounds (sensation_core._from_q). (viper: the model's state from self.v;
-        self.ls and self.lc are kept equal to its words.)"""
+        self.ls, .lc, .jumped, .predicted_rp_ohm are its words.)"""
         vv = self.v
         v = ptr32(vv)
         pk = ptr32(prev)
@@ -833,7 +842,7 @@ class SkinModel:
         if p0rp > 0:
             _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
         if jumped and p0rp > 0:
-            miss = rp_ohm - int(self.predicted_rp_ohm)
+            miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             if (miss if miss >= 0 else 0 - miss) > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 self.refit_cp()
@@ -841,8 +850,7 @@ class SkinModel:
         ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
-        self.ls = ls  # (self._set_ls(ls), inline: a call is ~10 us on the chip)
-        v[_V_LS] = ls + _V_BIAS
+        v[_V_LS] = ls + _V_BIAS  # (self.ls)
         lq_k = v[_V_LQK]
         q16 = int(_law_q(vv, lq_k))
         if q16 == NOROOT:
@@ -867,9 +875,7 @@ class SkinModel:
                         my = 0 - my
                     ls = ls0 + my
                     lc = lc1 + la
-                    self.ls = ls  # (_set_ls, _set_lc inline)
-                    v[_V_LS] = ls + _V_BIAS
-                    self.lc = lc
+                    v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
                     v[_V_LC] = lc + _V_BIAS
                     q2 = int(_law_q(vv, lq_k))
                     if q2 != NOROOT and q2 < q16:
@@ -877,9 +883,7 @@ class SkinModel:
                     else:
                         ls = ls1
                         lc = lc1
-                        self.ls = ls
                         v[_V_LS] = ls + _V_BIAS
-                        self.lc = lc
                         v[_V_LC] = lc + _V_BIAS
             if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
                 return -2
@@ -907,8 +911,8 @@ class SkinModel:
             st = int(from_q(c, q16))
             _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)
             rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
-        self.predicted_rp_ohm = rp
-        self.jumped = 1
+        v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
+        v[_V_JUMPED] = 1
         n = int(c.model_jumps)
         if n < _SAT30:
             c.model_jumps = n + 1
