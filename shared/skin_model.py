@@ -68,6 +68,7 @@ _L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
 _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _L_LN2 = const(-34653)  # log2(ln 2)
 NOROOT = const(-0x3FFFFFFF)  # "no sign change": what _root and _law_q return then
+_FB_KNOWN = const(0x1000000)  # in _root's kind: g(b) is v[_V_FB] - _V_BIAS (evaluated, nothing changed since)
 
 # what _root's g(kind, x, lc) measures, x being the unknown (p, o: the pulses it reads)
 _K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
@@ -114,7 +115,8 @@ _P_LS = const(4)  # log2 S with which the model reads it (set for the pulse befo
 _V_ON = const(33)  # SkinModel.on, .jumped, .predicted_rp_ohm (properties: the words)
 _V_JUMPED = const(34)
 _V_PRED = const(35)
-_V_N = const(36)
+_V_FB = const(36)  # g at the search's upper end, + _V_BIAS, when the caller knows it (_FB_KNOWN)
+_V_N = const(37)
 _V_BIAS = const(0x10000000)
 
 
@@ -122,7 +124,7 @@ _V_BIAS = const(0x10000000)
 def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     """x in [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16,
     on the values in vv (SkinModel.v); NOROOT if the ends have one sign or g fails. With
-    b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16), p and o the
+    b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16) (+ _FB_KNOWN), p and o the
     pulses read (_V_NOW, _V_BEFORE, _V_PROBE). _K_ANCHOR finds its own range from pulse
     p, R(I) >= Rp - Rs up to 16 times more (a, b are not read).
     One machine-code function (viper) with the model's Rp and fixmath.exp2q's
@@ -135,7 +137,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     beta = v[_V_BETA]
     rs = v[_V_RS]
     pb = (kind >> 8) & 0xFF
-    ob = kind >> 16
+    ob = (kind >> 16) & 0xFF
+    fbk = kind >> 24  # _FB_KNOWN
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
         n = v[pb + _P_RP] - rs  # lo = log2q(n) + mul_q16(log2 I - log2 1 mA, beta), inline
@@ -538,7 +541,14 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             fa = fx
             x = b
             phase = 1
-            continue
+            if fbk == 0:
+                continue
+            # g(b) known: its unit of work and its budget check, as if evaluated
+            if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+                v[_V_CUT] = 1
+                return NOROOT
+            v[_V_WORK] += 1
+            fx = v[_V_FB] - _V_BIAS
         if phase == 1:
             fb = fx
             phase = 2
@@ -674,7 +684,8 @@ def _law_q(vv, lq_k: int) -> int:
     lq_t = (v[_V_LME] + ltmax) >> 1  # the mE curve's charge at t_max
     if hi >= lq_t:
         hi = lq_t
-        if int(_root(vv, _K_LAW, hi, hi - 1, 0)) > 0:  # more than the curve gives at t_max
+        fb = int(_root(vv, _K_LAW, hi, hi - 1, 0))
+        if fb > 0:  # more than the curve gives at t_max
             lo = v[_V_LIMIN]
             hi = lq_max - ltmax
             x = v[_V_LIMAX]
@@ -687,7 +698,11 @@ def _law_q(vv, lq_k: int) -> int:
                 return NOROOT
             n = x + ltmax + 0x40000  # log2 of I t_max in 1/16 pC
         else:
-            n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
+            kind = _K_LAW
+            if fb != NOROOT:  # g at hi is fb: the search does not evaluate it again
+                v[_V_FB] = fb + _V_BIAS
+                kind = _K_LAW + _FB_KNOWN
+            n = int(_root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
