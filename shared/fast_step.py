@@ -18,15 +18,16 @@ and a method call on the Controller costs ~16 us more than a function call on th
 try:
     import micropython
     from micropython import const
-except ImportError:  # CPython: the decorator does nothing
+except ImportError:  # CPython: the decorators do nothing, ptr32 indexes the array itself
 
-    class micropython:  # noqa: N801 (stands in for the module's decorator)
-        @staticmethod
-        def native(f):
-            return f
+    class micropython:  # noqa: N801 (stands in for the module's decorators)
+        viper = native = staticmethod(lambda f: f)
 
     def const(x):
         return x
+
+    def ptr32(a):
+        return a
 
 
 from fixmath import frac12, muldiv
@@ -49,20 +50,49 @@ _RP_MIN_OHM = const(500)
 _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
+_K_QMAX = const(5)  # words of Controller._k: q_max_pc, mQ's numerator (pC) and denominator (ohm)
+_K_MQN = const(12)
+_K_MQD = const(13)
+_V_ON = const(33)  # words of SkinModel.v: skin_model._V_ON, _V_JUMPED
+_V_JUMPED = const(34)
 _NO_G = const(0x8000)  # "no estimate of the loop gain"
 _G_MAX = const(3891)  # 0.95 in Q.12: the largest G a step takes (no stable fixed point above)
 _G_LOWER_MAX = const(3072)  # 0.75: the largest G the lowering stretch sets (1/(1 - G) <= 4)
 
 
-class Pulse:
-    """A pulse the controller measured Rp on (c.before: the one before the last)."""
+# the pulse measured before the one just measured (c.before) lives in five words of the
+# controller's int array c._k from _K_B on (sensation_core._K_B): the viper code reads and
+# writes them by ptr32; Pulse gives them names
+_K_B = const(17)
+_B_I = const(0)  # i_ua
+_B_T = const(1)  # t_us
+_B_Q = const(2)  # q_pc = i_ua * t_us
+_B_RP = const(3)  # the Rp measured on it; 0: no such pulse (reset)
+_B_CLEAN = const(4)  # 1: the step computed from it was clean (no fault, no bound)
 
-    def __init__(self):
-        self.i_ua = 0
-        self.t_us = 0
-        self.q_pc = 0  # i_ua * t_us
-        self.rp_ohm = 0  # the Rp measured on it; 0: no such pulse (reset)
-        self.clean = 0  # 1: the step computed from it was clean (no fault, no bound)
+
+def _word(j):
+    def get(self):
+        return self._k[j]
+
+    def put(self, x):
+        self._k[j] = x
+
+    return property(get, put)
+
+
+class Pulse:
+    """A pulse the controller measured Rp on (c.before: the one before the last), as
+    attributes: a view on its words in the controller's int array k (_K_B ...)."""
+
+    def __init__(self, k):
+        self._k = k
+
+    i_ua = _word(_K_B + _B_I)
+    t_us = _word(_K_B + _B_T)
+    q_pc = _word(_K_B + _B_Q)
+    rp_ohm = _word(_K_B + _B_RP)
+    clean = _word(_K_B + _B_CLEAN)
 
 
 def least_elastic(x):
@@ -70,71 +100,75 @@ def least_elastic(x):
     return (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
 
 
-@micropython.native
-def fast_pulse(c, qf, q_k, rp_ohm, line, from_q):
+@micropython.viper
+def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     """MODE_FAST's next pulse from the paper's step qf (1/16 pC), for the pulse of charge
     q_k just measured (c.i_ua, c.t_us, c.status) with Rp = rp_ohm: the drift
     prediction, then a jump that stays on the path of the measured pulse (mE curve or
     duration ceiling): on the skin model, else a Newton step; else the paper's step,
     corrected when it enters the ceiling from a higher current. line(c, rp) is Eq. 3,
-    from_q(c, qf) Eq. 4 with the bounds. Returns the status."""
-    i_k = c.i_ua  # the measured pulse (from_q reads it: restored for a retry)
-    t_k = c.t_us
-    s_k = c.status
+    from_q(c, qf) Eq. 4 with the bounds. Returns the status. (viper: machine integers,
+    every value below 2**30; what the calls return is read with int().)"""
+    i_k = int(c.i_ua)  # the measured pulse (from_q reads it: restored for a retry)
+    t_k = int(c.t_us)
+    s_k = int(c.status)
     ceiling = s_k & _ST_T_MAX
-    rp_at = drift(c, q_k, rp_ohm)
+    rp_at = int(drift(c, q_k, rp_ohm))
     if rp_at != rp_ohm:
-        qf = line(c, rp_at)
+        qf = int(line(c, rp_at))
     model = c.skin
-    jumped = model.jumped
-    model.jumped = 0
+    vm = ptr32(model.v)  # (model.jumped, model.on: words of model.v, skin_model._V_JUMPED, _V_ON)
+    jumped = vm[_V_JUMPED]
+    vm[_V_JUMPED] = 0
     # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
     # where I and T are split for the charge, 1/2 us): the paper's step
     dq = qf - (q_k << 4)  # 1/16 pC
-    if (dq if dq >= 0 else -dq) >= (i_k + (0 if ceiling else t_k)) << 3:
-        if model.on and q_k > 0:
-            st = model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c.before, from_q)
+    if (dq if dq >= 0 else 0 - dq) >= (i_k + (0 if ceiling else t_k)) << 3:
+        if vm[_V_ON] != 0 and q_k > 0:
+            st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c._k, from_q))  # (c._k: c.before's words)
             if st >= 0:
                 return st
             c.i_ua = i_k  # the measured pulse back (three stores: cheaper than a call)
             c.t_us = t_k
             c.status = s_k
             if st == -2:  # the model ran out of its work per pulse: the paper's step when
-                if c.model_cuts < _SAT30:  # it lowers the charge, else the charge held
-                    c.model_cuts += 1
+                n = int(c.model_cuts)  # it lowers the charge, else the charge held
+                if n < _SAT30:
+                    c.model_cuts = n + 1
                 base = q_k << 4
-                return from_q(c, qf if qf < base else base)
-        q_new = newton(c, qf, q_k, rp_ohm)
+                return int(from_q(c, qf if qf < base else base))
+        q_new = int(newton(c, qf, q_k, rp_ohm))
         if q_new != qf:
-            st = from_q(c, q_new)
+            st = int(from_q(c, q_new))
             if (st & _ST_T_MAX) == ceiling:
-                if c.fast_jumps < _SAT30:  # a counter must never become a long int
-                    c.fast_jumps += 1
+                n = int(c.fast_jumps)
+                if n < _SAT30:  # a counter must never become a long int
+                    c.fast_jumps = n + 1
                 return st
             c.i_ua = i_k
             c.t_us = t_k
             c.status = s_k
-    st = from_q(c, qf)
-    i = c.i_ua
-    if st == _ST_T_MAX and not ceiling and i < i_k:
+    st = int(from_q(c, qf))
+    i = int(c.i_ua)
+    if st == _ST_T_MAX and ceiling == 0 and i < i_k:
         # entering the ceiling from the mE curve at a lower current I: Rp will rise
         # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
         # of the law on that Rp (I < 2**10: the divisor scaled into muldiv's range)
         if i < 1024:
-            dr = muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP)
+            dr = int(muldiv(rp_ohm, i_k - i, i << 8, 8, _MQ_CAP))
         else:
-            dr = muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP)
-        rp2 = rp_ohm + least_elastic(dr)
+            dr = int(muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP))
+        rp2 = rp_ohm + (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic
         if rp2 <= _RP_MAX_OHM:
             c.i_ua = i_k
             c.t_us = t_k
             c.status = s_k
-            st = from_q(c, line(c, rp2))
+            st = int(from_q(c, int(line(c, rp2))))
     return st
 
 
-@micropython.native
-def newton(c, qf, q_k, rp_ohm):
+@micropython.viper
+def newton(c, qf: int, q_k: int, rp_ohm: int) -> int:
     """A Newton step towards the self-consistent charge (1/16 pC), or qf.
 
     With the skin's response to charge along the mE curve linearised, slope
@@ -143,46 +177,51 @@ def newton(c, qf, q_k, rp_ohm):
     trustworthy pair, else from the skin's least elasticity (FAST_ELASTICITY_Q12,
     a lower bound on G: the step then never passes the fixed point of a skin
     that follows the model). docs/controller.md gives the rules; the paper's
-    step L(Rp_k) (= qf) is returned whenever neither applies.
+    step L(Rp_k) (= qf) is returned whenever neither applies. (viper: mQ and q_max
+    from c._k.)
     """
     if q_k <= 0:
         return qf
+    k = ptr32(c._k)
     g = _NO_G
     up = 1  # a jump that raises the charge: at most 2 paper steps (secant)
-    before = c.before
-    if before.clean:
-        dq = q_k - before.q_pc
-        adq = dq if dq >= 0 else -dq
+    qb = 0  # the pulse before (c.before; read when the secant uses it)
+    rb = 0
+    if k[_K_B + _B_CLEAN] != 0:
+        qb = k[_K_B + _B_Q]
+        dq = q_k - qb
+        adq = dq if dq >= 0 else 0 - dq
         if adq >= 64 and adq >= (q_k >> 5):  # enough excitation for a secant
-            dr = rp_ohm - before.rp_ohm
-            x = muldiv(c._mq_num_pc, dr if dr >= 0 else -dr, c._mq_den_ohm, 0, _MQ_CAP)  # mQ |dRp| (pC)
+            rb = k[_K_B + _B_RP]
+            dr = rp_ohm - rb
+            x = int(muldiv(k[_K_MQN], dr if dr >= 0 else 0 - dr, k[_K_MQD], 0, _MQ_CAP))  # mQ |dRp| (pC)
             if x < adq << 1:  # else |G| >= 2: the linear model is not trustworthy
-                g = frac12(x, adq)  # |G| in Q.12
-                if (dr < 0) != (dq < 0):
-                    g = -g
+                g = int(frac12(x, adq))  # |G| in Q.12
+                if (dr < 0 and dq >= 0) or (dr >= 0 and dq < 0):
+                    g = 0 - g
                 if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
                     g = _NO_G
     if g == _NO_G:  # the prior: |G| >= elasticity * mQ Rp / Q
-        ceiling = c.status == _ST_T_MAX  # the pulse just measured was held at t_max
-        if c.status != _ST_OK and not ceiling:  # another bound: no model of that path
+        s = int(c.status)
+        ceiling = 1 if s == _ST_T_MAX else 0  # the pulse just measured was held at t_max
+        if s != _ST_OK and ceiling == 0:  # another bound: no model of that path
             return qf
-        x = muldiv(c._mq_num_pc, rp_ohm, c._mq_den_ohm, 0, _MQ_CAP)  # mQ Rp (pC)
+        x = int(muldiv(k[_K_MQN], rp_ohm, k[_K_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
         if x >= q_k << 1:
             return qf
-        g = (frac12(x, q_k) * FAST_ELASTICITY_Q12) >> 12
+        g = (int(frac12(x, q_k)) * FAST_ELASTICITY_Q12) >> 12
         if ceiling:  # T fixed, only I moves: Rp falls as the charge rises, G < 0
-            g = -g
+            g = 0 - g
         elif g > 3891:
             return qf
         up = 2  # the prior's step does not pass the fixed point: at most 4 paper steps
-    if up == 1 and g > 0 and qf - (q_k << 4) < -(q_k >> 1):
+    if up == 1 and g > 0 and qf - (q_k << 4) < 0 - (q_k >> 1):
         # a step down by more than Q_k/32 on a secant: the skin's elasticity grows as the
         # charge falls, so the chord through the two pulses under-predicts the fall of Rp
         # below Q_k (a felt surge). G from the pair's arc elasticity at Q_k, stretched:
         # G = k e_arc mQ Rp_k / Q_k, e_arc = (dRp / (Rp_k + Rp_b)) / (dQ / (Q_k + Q_b))
-        qb = before.q_pc
-        r = 0x21000 if qb >> 5 >= q_k else frac12(q_k + qb, q_k)  # (Q_k + Q_b) / Q_k, Q.12, <= 33
-        x = (((g * r) >> 12) * frac12(rp_ohm, rp_ohm + before.rp_ohm)) >> 12
+        r = 0x21000 if qb >> 5 >= q_k else int(frac12(q_k + qb, q_k))  # (Q_k + Q_b) / Q_k, Q.12, <= 33
+        x = (((g * r) >> 12) * int(frac12(rp_ohm, rp_ohm + rb))) >> 12
         x = (x * FAST_LOWER_STRETCH_Q3) >> 3
         if x > g:
             g = x if x < _G_LOWER_MAX else _G_LOWER_MAX
@@ -196,25 +235,26 @@ def newton(c, qf, q_k, rp_ohm):
     else:
         den = 4096 - g  # (1 - G) in Q.12, in [205, 10240]
         h = n // den
-        if h > c.q_max_pc >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
-            q_new = c._q_max_q4 + 1  # _from_q clamps and flags it
+        q_max = k[_K_QMAX]
+        if h > q_max >> 12:  # Q* > q_max: no need to compute it (it would pass 2**30)
+            q_new = (q_max << 4) + 1  # _from_q clamps and flags it
         else:
             q_new = (h << 12) + (((n - h * den) << 12) // den)  # Q* in pC, < q_max + 2**12
-            if q_new > c.q_max_pc:
-                q_new = c._q_max_q4 + 1
+            if q_new > q_max:
+                q_new = (q_max << 4) + 1
             else:
                 q_new = q_new << 4
     base = q_k << 4
     step = qf - base  # the paper's step, 1/16 pC
     jump = q_new - base
-    if step == 0 or (jump > 0) != (step > 0):
+    if step == 0 or (jump > 0 and step < 0) or (jump <= 0 and step > 0):
         return qf  # not the paper's direction: keep the paper's step
     if step > 0:  # more charge: at most 2 (secant) or 4 (prior) paper steps: overshoot is felt
         if step < 0x4000000 and jump > step << up:
             q_new = base + (step << up)
     else:  # less charge: at most 4 paper steps, and not below Q_k/4 unless the paper's step is
         lo = base >> 2
-        if -step < 0x8000000 and base + (step << 2) > lo:
+        if 0 - step < 0x8000000 and base + (step << 2) > lo:
             lo = base + (step << 2)
         if lo > qf:  # (never more charge than the paper's step)
             lo = qf
@@ -225,31 +265,32 @@ def newton(c, qf, q_k, rp_ohm):
     return q_new
 
 
-@micropython.native
-def drift(c, q_k, rp_ohm):
+@micropython.viper
+def drift(c, q_k: int, rp_ohm: int) -> int:
     """The Rp the law is applied to under a falling drift (sweat, gel soaking in), else
     rp_ohm. Rp's change since the last pulse less what our own step explains (with the
     least elasticity) is the skin moving; when it has fallen two pulses running, the law
     is applied to Rp one pulse ahead (the smaller of the two falls, at most Rp/16). Only
     falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm."""
     d_now = 0
-    before = c.before
-    if before.clean and q_k > 0:
-        dq = q_k - before.q_pc
-        adq = dq if dq >= 0 else -dq
+    k = ptr32(c._k)  # c.before's words
+    if k[_K_B + _B_CLEAN] != 0 and q_k > 0:
+        dq = q_k - k[_K_B + _B_Q]
+        adq = dq if dq >= 0 else 0 - dq
         if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
-            f = frac12(adq, q_k)  # |dQ|/Q in Q.12, < 128
-            e = least_elastic((rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12))  # e Rp |dQ| / Q
-            d_now = rp_ohm - before.rp_ohm - (e if dq >= 0 else -e)
-    d_prev = c.drift_ohm
+            f = int(frac12(adq, q_k))  # |dQ|/Q in Q.12, < 128
+            x = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)
+            e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic: e Rp |dQ| / Q
+            d_now = rp_ohm - k[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
+    d_prev = int(c.drift_ohm)
     c.drift_ohm = d_now
     if d_now >= 0 or d_prev >= 0:
         return rp_ohm
     d = d_now if d_now > d_prev else d_prev  # the smaller fall
-    if -d < rp_ohm >> 9:  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
+    if 0 - d < (rp_ohm >> 9):  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
         return rp_ohm
-    if -d > rp_ohm >> 4:
-        d = -(rp_ohm >> 4)
+    if 0 - d > (rp_ohm >> 4):
+        d = 0 - (rp_ohm >> 4)
     rp2 = rp_ohm + d
     if rp2 < _RP_MIN_OHM:
         return rp_ohm

@@ -67,22 +67,41 @@ def div2(hi: int, lo: int, dv: int, rnd: int) -> int:
     """(hi * 2**15 + lo) / dv, floored (rnd=0) or rounded half up (rnd=1).
 
     Needs 0 <= lo < 2**15, 1 <= dv <= 2**29. Returns _SAT15 when the quotient
-    is >= 2**15. Restoring division, one bit per step: r < dv, so 2r+1 < 2**30.
-    """
+    is >= 2**15. Long division over lo's bits, as many a step as keep the partial
+    remainder's shift below 2**30 (r < dv): one step of 15 bits for dv <= 2**15,
+    then 8 + 7, 5 + 5 + 5, 3 bits a step; above 2**27 one bit a step (restoring,
+    2r+1 < 2**30). (The chip has no divide instruction: a division costs ~0.4 us.)"""
     if hi >= dv:
         return _SAT15
     r = hi
     q = 0
-    bit = 0x4000
-    while bit:
-        r = r + r
-        if lo & bit:
-            r += 1
-        q = q + q
-        if r >= dv:
-            r -= dv
-            q += 1
-        bit >>= 1
+    if dv <= 0x8000000:
+        s = 3
+        if dv <= 0x8000:
+            s = 15
+        elif dv <= 0x400000:
+            s = 8
+        elif dv <= 0x2000000:
+            s = 5
+        n = 15  # bits of lo still to bring down
+        while n > 0:
+            t = s if s < n else n
+            n -= t
+            r = (r << t) + ((lo >> n) & ((1 << t) - 1))
+            d = r // dv
+            q = (q << t) + d
+            r = r - d * dv
+    else:
+        bit = 0x4000
+        while bit:
+            r = r + r
+            if lo & bit:
+                r += 1
+            q = q + q
+            if r >= dv:
+                r -= dv
+                q += 1
+            bit >>= 1
     if rnd and r + r >= dv:
         q += 1
     return q
@@ -156,12 +175,32 @@ def log2q(x: int) -> int:
     if x < 1:
         x = 1
     n = 22
-    while x >= 0x800000:
-        x >>= 1
-        n += 1
-    while x < 0x400000:
-        x <<= 1
-        n -= 1
+    if x >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+        if x >= 0x4000000:
+            x >>= 4
+            n += 4
+        if x >= 0x1000000:
+            x >>= 2
+            n += 2
+        if x >= 0x800000:
+            x >>= 1
+            n += 1
+    else:
+        if x < 0x80:
+            x <<= 16
+            n -= 16
+        if x < 0x8000:
+            x <<= 8
+            n -= 8
+        if x < 0x80000:
+            x <<= 4
+            n -= 4
+        if x < 0x200000:
+            x <<= 2
+            n -= 2
+        if x < 0x400000:
+            x <<= 1
+            n -= 1
     t = ptr32(_LOG_TAB)
     k = (x >> 16) - 64
     a = int(t[k])

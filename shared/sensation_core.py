@@ -108,7 +108,8 @@ _K_MQD = const(13)
 _K_YQ4 = const(14)
 _K_LCAP = const(15)
 _K_RP = const(16)  # update's Rp, echoed
-_K_N = const(17)
+_K_B = const(17)  # 5 words: the pulse before the last, c.before (fast_step.Pulse: I, T, Q, Rp, clean)
+_K_N = const(22)
 _RP_LO = RP_MIN_OHM  # as an object
 
 
@@ -256,8 +257,8 @@ class Controller:
 
     def __init__(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         self.skin = SkinModel(self)  # MODE_FAST's skin model (set_skin), built once
-        self.before = Pulse()  # MODE_FAST: the pulse measured before the one just measured
         self._k = array("i", bytes(4 * _K_N))  # the law and the limits as the viper code reads them
+        self.before = Pulse(self._k)  # MODE_FAST: the pulse measured before the one just measured
         self.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
         self._k[_K_MODE] = self.mode = MODE_AKHTAR
         self.rp_ohm = 0  # last Rp given to update()
@@ -436,12 +437,11 @@ class Controller:
         if mode != MODE_FAST:
             return int(_from_q(self, qf))
         st = int(fast_pulse(self, qf, q_k, rp_ohm, _line, _from_q))
-        b = self.before  # for the next secant, drift and two-pulse fit
-        b.i_ua = i_k
-        b.t_us = t_k
-        b.q_pc = q_k
-        b.rp_ohm = rp_ohm
-        b.clean = 1 if (st == ST_OK and q_k > 0) else 0
+        k[_K_B] = i_k  # c.before, for the next secant, drift and two-pulse fit
+        k[_K_B + 1] = t_k
+        k[_K_B + 2] = q_k
+        k[_K_B + 3] = rp
+        k[_K_B + 4] = 1 if (st == ST_OK and q_k > 0) else 0
         return st
 
     # Eq. 3, Eq. 4 with the bounds, the baseline modes: module functions, also methods

@@ -31,7 +31,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, _LOG_TAB, exp2q, log2q, mul_q16
+from fixmath import _EXP_TAB, _LOG_TAB, log2q
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -57,6 +57,9 @@ _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
 _ST_T_MAX = const(0x008)  # sensation_core.ST_T_MAX
+_KB_I = const(17)  # the words of the controller's c._k that hold c.before (fast_step._K_B):
+_KB_T = const(18)  # its I, T and Rp
+_KB_RP = const(20)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -65,6 +68,7 @@ _L_Z12 = const(234946)  # log2(12): beyond it exp(-T/tau) < 2**-17, taken as 0
 _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _L_LN2 = const(-34653)  # log2(ln 2)
 NOROOT = const(-0x3FFFFFFF)  # "no sign change": what _root and _law_q return then
+_FB_KNOWN = const(0x1000000)  # in _root's kind: g(b) is v[_V_FB] - _V_BIAS (evaluated, nothing changed since)
 
 # what _root's g(kind, x, lc) measures, x being the unknown (p, o: the pulses it reads)
 _K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
@@ -108,7 +112,11 @@ _P_LT = const(1)  # log2 T (us), Q.16
 _P_RP = const(2)  # the Rp measured on it (ohm)
 _P_RLP = const(3)  # log2 of that Rp
 _P_LS = const(4)  # log2 S with which the model reads it (set for the pulse before), + _V_BIAS
-_V_N = const(33)
+_V_ON = const(33)  # SkinModel.on, .jumped, .predicted_rp_ohm (properties: the words)
+_V_JUMPED = const(34)
+_V_PRED = const(35)
+_V_FB = const(36)  # g at the search's upper end, + _V_BIAS, when the caller knows it (_FB_KNOWN)
+_V_N = const(37)
 _V_BIAS = const(0x10000000)
 
 
@@ -116,7 +124,7 @@ _V_BIAS = const(0x10000000)
 def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     """x in [a, b] where g(kind, x, lc0) changes sign (Illinois' regula falsi), to 1/2**16,
     on the values in vv (SkinModel.v); NOROOT if the ends have one sign or g fails. With
-    b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16), p and o the
+    b < a: g(kind, a, lc0) itself. kind = _K_* + (p << 8) + (o << 16) (+ _FB_KNOWN), p and o the
     pulses read (_V_NOW, _V_BEFORE, _V_PROBE). _K_ANCHOR finds its own range from pulse
     p, R(I) >= Rp - Rs up to 16 times more (a, b are not read).
     One machine-code function (viper) with the model's Rp and fixmath.exp2q's
@@ -129,19 +137,40 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     beta = v[_V_BETA]
     rs = v[_V_RS]
     pb = (kind >> 8) & 0xFF
-    ob = kind >> 16
+    ob = (kind >> 16) & 0xFF
+    fbk = kind >> 24  # _FB_KNOWN
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
         n = v[pb + _P_RP] - rs  # lo = log2q(n) + mul_q16(log2 I - log2 1 mA, beta), inline
         if n < 16:
             return NOROOT
         k = 22
-        while n >= 0x800000:
-            n >>= 1
-            k += 1
-        while n < 0x400000:
-            n <<= 1
-            k -= 1
+        if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+            if n >= 0x4000000:
+                n >>= 4
+                k += 4
+            if n >= 0x1000000:
+                n >>= 2
+                k += 2
+            if n >= 0x800000:
+                n >>= 1
+                k += 1
+        else:
+            if n < 0x80:
+                n <<= 16
+                k -= 16
+            if n < 0x8000:
+                n <<= 8
+                k -= 8
+            if n < 0x80000:
+                n <<= 4
+                k -= 4
+            if n < 0x200000:
+                n <<= 2
+                k -= 2
+            if n < 0x400000:
+                n <<= 1
+                k -= 1
         eu = (n >> 16) - 64
         ea = g2[eu]
         eb = g2[eu + 1]
@@ -217,12 +246,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             if n < 1:
                 n = 1
             k = 22
-            while n >= 0x800000:
-                n >>= 1
-                k += 1
-            while n < 0x400000:
-                n <<= 1
-                k -= 1
+            if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                if n >= 0x4000000:
+                    n >>= 4
+                    k += 4
+                if n >= 0x1000000:
+                    n >>= 2
+                    k += 2
+                if n >= 0x800000:
+                    n >>= 1
+                    k += 1
+            else:
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
             eu = (n >> 16) - 64
             ea = g2[eu]
             eb = g2[eu + 1]
@@ -240,12 +289,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -364,12 +433,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -413,12 +502,32 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 if n < 1:
                     n = 1
                 k = 22
-                while n >= 0x800000:
-                    n >>= 1
-                    k += 1
-                while n < 0x400000:
-                    n <<= 1
-                    k -= 1
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
                 eu = (n >> 16) - 64
                 ea = g2[eu]
                 eb = g2[eu + 1]
@@ -432,7 +541,14 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             fa = fx
             x = b
             phase = 1
-            continue
+            if fbk == 0:
+                continue
+            # g(b) known: its unit of work and its budget check, as if evaluated
+            if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+                v[_V_CUT] = 1
+                return NOROOT
+            v[_V_WORK] += 1
+            fx = v[_V_FB] - _V_BIAS
         if phase == 1:
             fb = fx
             phase = 2
@@ -510,12 +626,32 @@ def _pulse(vv, base: int, i: int, t: int, rp: int):
         if n < 1:
             n = 1
         k = 22
-        while n >= 0x800000:
-            n >>= 1
-            k += 1
-        while n < 0x400000:
-            n <<= 1
-            k -= 1
+        if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+            if n >= 0x4000000:
+                n >>= 4
+                k += 4
+            if n >= 0x1000000:
+                n >>= 2
+                k += 2
+            if n >= 0x800000:
+                n >>= 1
+                k += 1
+        else:
+            if n < 0x80:
+                n <<= 16
+                k -= 16
+            if n < 0x8000:
+                n <<= 8
+                k -= 8
+            if n < 0x80000:
+                n <<= 4
+                k -= 4
+            if n < 0x200000:
+                n <<= 2
+                k -= 2
+            if n < 0x400000:
+                n <<= 1
+                k -= 1
         eu = (n >> 16) - 64
         ea = g2[eu]
         eb = g2[eu + 1]
@@ -548,7 +684,8 @@ def _law_q(vv, lq_k: int) -> int:
     lq_t = (v[_V_LME] + ltmax) >> 1  # the mE curve's charge at t_max
     if hi >= lq_t:
         hi = lq_t
-        if int(_root(vv, _K_LAW, hi, hi - 1, 0)) > 0:  # more than the curve gives at t_max
+        fb = int(_root(vv, _K_LAW, hi, hi - 1, 0))
+        if fb > 0:  # more than the curve gives at t_max
             lo = v[_V_LIMIN]
             hi = lq_max - ltmax
             x = v[_V_LIMAX]
@@ -561,7 +698,11 @@ def _law_q(vv, lq_k: int) -> int:
                 return NOROOT
             n = x + ltmax + 0x40000  # log2 of I t_max in 1/16 pC
         else:
-            n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
+            kind = _K_LAW
+            if fb != NOROOT:  # g at hi is fb: the search does not evaluate it again
+                v[_V_FB] = fb + _V_BIAS
+                kind = _K_LAW + _FB_KNOWN
+            n = int(_root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
@@ -585,6 +726,16 @@ def _law_q(vv, lq_k: int) -> int:
     return (m + (1 << (21 - n))) >> (22 - n)
 
 
+def _word(j, bias):
+    def get(self):
+        return self.v[j] - bias
+
+    def put(self, x):
+        self.v[j] = x + bias
+
+    return property(get, put)
+
+
 class SkinModel:
     """The model's fitted parameters, the pulses it reads and its last answer. Built once
     by the Controller (`c`: its limits, mE and Eq. 3 are copied from it by limits/law).
@@ -593,17 +744,19 @@ class SkinModel:
 
     def __init__(self, c):
         self.c = c
-        self.on = 0  # 1: a model is set
+        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*); the properties below
+        self.v[_V_LS] = _V_BIAS
+        self.v[_V_LC] = _V_BIAS
         self.rs_ohm = 0  # fitted: series resistance Rs
         self.beta_q16 = 0  # fitted: current exponent beta, Q.16
         self.lc_set = 0  # fitted: log2 Cp (pF) as set
-        self.lc = 0  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
-        self.ls = 0  # log2 S, anchored on the last jump
-        self.jumped = 0  # 1: the pulse just measured was a model jump
-        self.predicted_rp_ohm = 0  # the Rp the model predicted for that jump
-        self.v = array("i", bytes(4 * _V_N))  # what _root reads (_V_*)
-        self.v[_V_LS] = _V_BIAS
-        self.v[_V_LC] = _V_BIAS
+
+    # words of self.v as attributes (the viper code reads and writes the words)
+    on = _word(_V_ON, 0)  # 1: a model is set
+    jumped = _word(_V_JUMPED, 0)  # 1: the pulse just measured was a model jump
+    predicted_rp_ohm = _word(_V_PRED, 0)  # the Rp the model predicted for that jump
+    ls = _word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
+    lc = _word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -612,7 +765,7 @@ class SkinModel:
         else:
             self.on = 1
             self.lc_set = log2q(cp_pf)
-            self._set_lc(self.lc_set)
+            self.lc = self.lc_set
         self.rs_ohm = rs_ohm
         self.beta_q16 = beta_q16
         self.v[_V_RS] = rs_ohm
@@ -638,11 +791,6 @@ class SkinModel:
         v[_V_LCAP] = c._line_cap_q4
 
     @micropython.native
-    def _set_lc(self, lc):
-        self.lc = lc
-        self.v[_V_LC] = lc + _V_BIAS
-
-    @micropython.native
     def rp(self, ls, lc, li, lt):
         """Rp (ohm, at most 2**21) of the model skin with log2 S = ls, log2 Cp = lc for a
         pulse with log2 I = li, log2 T = lt (_root's model, read as an anchor on Rp 0)."""
@@ -651,37 +799,46 @@ class SkinModel:
         v[_V_PROBE + _P_LT] = lt
         return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
-    @micropython.native
+    @micropython.viper
     def refit_cp(self):
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
-        when within 1/8 ... 2 x the Cp set."""
-        v = self.v
-        b = self.beta_q16
-        z0 = v[_V_BEFORE + _P_LT] + mul_q16(v[_V_BEFORE + _P_LI] - _L_1MA, b)  # log2 T/tau, less log2 (S Cp / 1e6)
-        z1 = v[_V_NOW + _P_LT] + mul_q16(v[_V_NOW + _P_LI] - _L_1MA, b)
-        if z0 > z1:  # (two names, not a tuple: a tuple would be allocated in MicroPython)
+        when within 1/8 ... 2 x the Cp set. (viper: Rs, beta and the pulses from self.v.)"""
+        vv = self.v
+        v = ptr32(vv)
+        b = v[_V_BETA]  # mul_q16(x, beta), inline below (beta >= 0)
+        ma = v[_V_BEFORE + _P_LI] - _L_1MA
+        mc = 0 - ma if ma < 0 else ma
+        my = (((mc >> 10) * b) >> 6) + (((mc & 0x3FF) * b) >> 16)
+        z0 = v[_V_BEFORE + _P_LT] + (0 - my if ma < 0 else my)  # log2 T/tau, less log2 (S Cp / 1e6)
+        ma = v[_V_NOW + _P_LI] - _L_1MA
+        mc = 0 - ma if ma < 0 else ma
+        my = (((mc >> 10) * b) >> 6) + (((mc & 0x3FF) * b) >> 16)
+        z1 = v[_V_NOW + _P_LT] + (0 - my if ma < 0 else my)
+        if z0 > z1:
             p = _V_NOW
             o = _V_BEFORE
         else:
             p = _V_BEFORE
             o = _V_NOW
-        d = v[p + _P_RP] - self.rs_ohm
+        d = v[p + _P_RP] - v[_V_RS]
         if d >= 16:
-            lo = log2q(d + 2)  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
+            lo = int(log2q(d + 2))  # R - (Rp - Rs) = 2 ohm: the pulse charged Cp fully
             kind = _K_TWO + (p << 8) + (o << 16)
-            lr = _root(v, kind, lo, lo + 0x40000, 0)
+            lr = int(_root(vv, kind, lo, lo + 0x40000, 0))
             if lr != NOROOT:
-                _root(v, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
+                _root(vv, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
                 lc = v[_V_LCTWO] - _V_BIAS
-                if self.lc_set - 0x30000 <= lc <= self.lc_set + 0x10000:
-                    self._set_lc(lc)
+                lc_set = int(self.lc_set)
+                if lc_set - 0x30000 <= lc and lc <= lc_set + 0x10000:
+                    v[_V_LC] = lc + _V_BIAS  # (self.lc)
 
-    @micropython.native
-    def jump(self, qf, q_k, rp_ohm, i_k, t_k, jumped, prev, from_q):
+    @micropython.viper
+    def jump(self, qf: int, q_k: int, rp_ohm: int, i_k: int, t_k: int, jumped: int, prev, from_q) -> int:
         """MODE_FAST's jump with the skin model: the law solved on the model anchored
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
-        prev: the controller's pulse before it, rp_ohm 0 if none). After a model jump
+        prev: the controller's int array c._k, whose words _KB_* hold the pulse before it,
+        c.before, Rp 0 if none). After a model jump
         that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
         the contact hypothesis is also solved and the smaller charge taken. Returns the
         status, or -1 when the model has no answer (the caller goes on without it), -2
@@ -690,75 +847,86 @@ class SkinModel:
         A fresh rise into the duration ceiling that the model predicts to raise Rp by more
         than 1/8 is halved (docs/controller.md, rule 6).
         q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
-        with the bounds (sensation_core._from_q)."""
-        v = self.v
-        _pulse(v, _V_NOW, i_k, t_k, rp_ohm)
-        p0rp = prev.rp_ohm
+        with the bounds (sensation_core._from_q). (viper: the model's state from self.v;
+        self.ls, .lc, .jumped, .predicted_rp_ohm are its words.)"""
+        vv = self.v
+        v = ptr32(vv)
+        pk = ptr32(prev)
+        _pulse(vv, _V_NOW, i_k, t_k, rp_ohm)
+        p0rp = pk[_KB_RP]
         if p0rp > 0:
-            _pulse(v, _V_BEFORE, prev.i_ua, prev.t_us, p0rp)
+            _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
         if jumped and p0rp > 0:
-            miss = rp_ohm - self.predicted_rp_ohm
+            miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            if (miss if miss >= 0 else -miss) > rp_ohm >> 9 and (dl if dl >= 0 else -dl) > 0x800:
+            if (miss if miss >= 0 else 0 - miss) > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 self.refit_cp()
-        ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)  # anchor S on the pulse just measured
+        lc = v[_V_LC] - _V_BIAS  # (self.lc)
+        ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
-        self.ls = ls  # (self._set_ls(ls), inline: a call is ~10 us on the chip)
-        v[_V_LS] = ls + _V_BIAS
+        v[_V_LS] = ls + _V_BIAS  # (self.ls)
         lq_k = v[_V_LQK]
-        q16 = _law_q(v, lq_k)
-        if q16 == NOROOT and not v[_V_CUT] and self.lc > self.lc_set:
+        q16 = int(_law_q(vv, lq_k))
+        lc_set = int(self.lc_set) if q16 == NOROOT else lc
+        if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
             # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
-            # passes 1): the fitted Cp back, anchored anew (docs/controller.md, rule 4)
-            self._set_lc(self.lc_set)
-            ls = _root(v, _K_ANCHOR + (_V_NOW << 8), 0, 0, self.lc)
+            # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
+            lc = lc_set
+            v[_V_LC] = lc + _V_BIAS  # (self.lc)
+            ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
             if ls == NOROOT:
                 return -2 if v[_V_CUT] else -1
-            self.ls = ls
-            v[_V_LS] = ls + _V_BIAS
-            q16 = _law_q(v, lq_k)
+            v[_V_LS] = ls + _V_BIAS  # (self.ls)
+            q16 = int(_law_q(vv, lq_k))
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
-        if q16 > q_k << 4 and not jumped and p0rp > 0:
+        if q16 > (q_k << 4) and jumped == 0 and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
-            ls0 = _root(v, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, self.lc)  # and on the one before
+            ls0 = int(_root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
             if ls0 != NOROOT:
                 v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
-                la = _root(v, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0)
+                la = int(_root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
                 if la != NOROOT:
-                    ls1 = self.ls
-                    lc1 = self.lc
-                    ls = ls0 + mul_q16(la, self.beta_q16 - 0x10000)
-                    self.ls = ls  # (_set_ls, _set_lc inline)
-                    v[_V_LS] = ls + _V_BIAS
-                    self.lc = lc1 + la
-                    v[_V_LC] = lc1 + la + _V_BIAS
-                    q2 = _law_q(v, lq_k)
+                    ls1 = ls
+                    lc1 = lc
+                    mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
+                    ma = 0 - la if la < 0 else la
+                    mc = 0 - mb if mb < 0 else mb
+                    my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+                    if la < 0:
+                        my = my if mb < 0 else 0 - my
+                    elif mb < 0:
+                        my = 0 - my
+                    ls = ls0 + my
+                    lc = lc1 + la
+                    v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
+                    v[_V_LC] = lc + _V_BIAS
+                    q2 = int(_law_q(vv, lq_k))
                     if q2 != NOROOT and q2 < q16:
                         q16 = q2
                     else:
-                        self.ls = ls1
-                        v[_V_LS] = ls1 + _V_BIAS
-                        self.lc = lc1
-                        v[_V_LC] = lc1 + _V_BIAS
+                        ls = ls1
+                        lc = lc1
+                        v[_V_LS] = ls + _V_BIAS
+                        v[_V_LC] = lc + _V_BIAS
             if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
                 return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base
-        if step == 0 or (q16 > base) != (step > 0):
+        if step == 0 or (q16 > base and step < 0) or (q16 <= base and step > 0):
             return -1
-        if step > 0 and step < 0x4000000 >> FAST_MODEL_RAISE_LOG2 and q16 - base > step << FAST_MODEL_RAISE_LOG2:
+        if step > 0 and step < (0x4000000 >> FAST_MODEL_RAISE_LOG2) and q16 - base > (step << FAST_MODEL_RAISE_LOG2):
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
-        s_k = c.status
-        st = from_q(c, q16)
-        _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)  # the pulse sent: the model's prediction of its Rp
-        rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
-        if (q16 > base and not jumped and (st & _ST_T_MAX) and not (s_k & _ST_T_MAX)
-                and rp - rp_ohm > rp_ohm >> FAST_MODEL_RP_RISE_LOG2):
+        s_k = int(c.status)
+        st = int(from_q(c, q16))
+        _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)  # the pulse sent: the model's prediction of its Rp
+        rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
+        if (q16 > base and jumped == 0 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
+                and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
             # was no model jump) that enters the duration ceiling, where the model moves I at
             # t_max, and predicts Rp to rise by more than 1/2**FAST_MODEL_RP_RISE_LOG2: half of
@@ -766,11 +934,12 @@ class SkinModel:
             q16 = base + ((q16 - base) >> 1)
             c.i_ua = i_k
             c.t_us = t_k
-            st = from_q(c, q16)
-            _pulse(v, _V_PROBE, c.i_ua, c.t_us, 0)
-            rp = _root(v, _K_RP + (_V_PROBE << 8), self.ls, self.ls - 1, self.lc)
-        self.predicted_rp_ohm = rp
-        self.jumped = 1
-        if c.model_jumps < _SAT30:
-            c.model_jumps += 1
+            st = int(from_q(c, q16))
+            _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)
+            rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
+        v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
+        v[_V_JUMPED] = 1
+        n = int(c.model_jumps)
+        if n < _SAT30:
+            c.model_jumps = n + 1
         return st

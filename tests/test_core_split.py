@@ -20,8 +20,12 @@ from strategies import scenario
 
 COPIES = {
     fast_step: {"_ST_OK": sc.ST_OK, "_ST_T_MAX": sc.ST_T_MAX, "_RP_MIN_OHM": sc.RP_MIN_OHM,
-                "_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1},
-    skin_model: {"_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1},
+                "_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1,
+                "_K_QMAX": sc._K_QMAX, "_K_MQN": sc._K_MQN, "_K_MQD": sc._K_MQD, "_K_B": sc._K_B,
+                "_V_ON": skin_model._V_ON, "_V_JUMPED": skin_model._V_JUMPED},
+    skin_model: {"_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1,
+                 "_KB_I": sc._K_B + fast_step._B_I, "_KB_T": sc._K_B + fast_step._B_T,
+                 "_KB_RP": sc._K_B + fast_step._B_RP},
     fixmath: {"_SAT30": 2**30 - 1},
 }
 

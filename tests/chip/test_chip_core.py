@@ -2,7 +2,8 @@
 the skin model fitted by host/skin.py, replaying the closed loops of bench/controllers.py
 with the most model work (bench/core_chip.py: the Rp each pulse read in CPython fed to the
 chip's Controller.update). Emulated microseconds are deterministic: every update of the
-replay takes at most 2000 us, and the chip's pulses are CPython's."""
+replay takes at most 1700 us (issue 12 asks for 2000; measured 1423 worst over
+bench/core_chip.py's cases after MODE_FAST was made viper), and the chip's pulses are CPython's."""
 
 import importlib.util
 import sys
@@ -14,7 +15,7 @@ from .harness import ROOT
 # and law, cut), and a jump on most pulses under 0.3 % Rp noise
 CASES = (("gel", 0.0), ("step +20 700", 0.003))
 UPDATES = 160
-WORST_US = 2000
+WORST_US = 1700
 
 
 def _bench():
@@ -24,7 +25,7 @@ def _bench():
     return mod
 
 
-def test_worst_update_with_the_skin_model_within_2_ms(chip, tmp_path):
+def test_worst_update_with_the_skin_model_within_1_7_ms(chip, tmp_path):
     bench = _bench()
     saved = list(sys.path)
     try:

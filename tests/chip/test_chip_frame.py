@@ -13,10 +13,11 @@ from .harness import CPU_WORK, frame_setup
 US = 1000  # ns
 # (channels, rate Hz, mode, T0 us, bound in us per channel) for the CPU work a channel, from
 # docs/performance.md's table (worst of 10 frames there): open loop and AKHTAR well under
-# 1 ms, MODE_FAST (without a skin model) within 1 ms, also at its longest pulse
+# 1 ms, MODE_FAST (without a skin model) within 1 ms, also at its longest pulse (measured 718
+# and 554 us a channel after issue 12's viper MODE_FAST: bounds ~30 % above, as the others)
 CPU_WORK_CASES = [(1, 100, sc.MODE_OPEN_LOOP, 1000, 650), (2, 50, sc.MODE_AKHTAR, 200, 750),
-                  (4, 50, sc.MODE_AKHTAR, 1000, 750), (1, 100, sc.MODE_FAST, 7500, 1000),
-                  (4, 50, sc.MODE_FAST, 2000, 1000)]
+                  (4, 50, sc.MODE_AKHTAR, 1000, 750), (1, 100, sc.MODE_FAST, 7500, 950),
+                  (4, 50, sc.MODE_FAST, 2000, 750)]
 
 FRAMES = """
 o0 = s.overruns
