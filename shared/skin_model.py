@@ -918,7 +918,9 @@ class SkinModel:
         step = qf - base
         if step == 0 or (q16 > base and step < 0) or (q16 <= base and step > 0):
             return -1
-        if step > 0 and step < (0x4000000 >> FAST_MODEL_RAISE_LOG2) and q16 - base > (step << FAST_MODEL_RAISE_LOG2):
+        # (the shift's test first: step << FAST_MODEL_RAISE_LOG2 is formed only when it is <= q16 - base < 2**30,
+        # for every step: a guard step < 2**22 used to skip the cap on larger steps, review of session 14)
+        if step > 0 and ((q16 - base) >> FAST_MODEL_RAISE_LOG2) >= step and q16 - base > (step << FAST_MODEL_RAISE_LOG2):
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
         s_k = int(c.status)
