@@ -535,3 +535,49 @@ def test_set_vmon_all_refuses_any_other_shape_with_one_line(values):
     with pytest.raises(CommandError) as e:
         Commands().set_vmon_all(values, store=True)
     assert "\n" not in str(e.value) and ("monitor correction" in str(e.value) or "gain_ppm" in str(e.value))
+
+
+def test_a_session_on_a_board_that_ignored_its_stored_correction_says_so_in_one_line(tmp_path):
+    """Review of d560dd3 (finding 2a): a file stored under the old, wider windows (monitor gain 1.095)
+    is ignored at boot (VMON_BAD) and only `info` told. Now calibrate/arm/record/monitor print one
+    stderr line (what happened, what to do), and a Session logs it; a board with a valid file or none
+    prints nothing."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from steadytouch.device import vmon_warning
+    from steadytouch.session import Session
+
+    exe = str(Path(sys.executable).parent / "steadytouch")
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    args = [exe, "calibrate", "--device", "sim://steady", "--i0-ua", "3000", "--t0-us", "300", "--x-star-ohm",
+            "-1670", "--y-star-pc", "0"]
+    for text, warned in ((vmon_cal.CAL_HEADER + "\n0 1095000 0 0\n1 0 0 1006000\n", True),
+                         (vmon_cal.CAL_HEADER + "\n0 1000000 1500 0\n", True),
+                         (vmon_cal.CAL_HEADER + "\n0 1010000 0 0\n1 0 0 1006000\n", False), (None, False)):
+        if text is None:
+            (tmp_path / "vmon_cal.txt").unlink()
+        else:
+            (tmp_path / "vmon_cal.txt").write_text(text)
+        p = subprocess.run(args, capture_output=True, text=True, env=env, timeout=60)
+        assert p.returncode == 0, p.stderr
+        lines = [ln for ln in p.stderr.splitlines() if "ignored its stored correction" in ln]
+        assert len(lines) == (1 if warned else 0), (text, p.stderr)
+        if warned:
+            assert "run `steadytouch selftest` again" in lines[0] and "uncorrected" in lines[0]
+    logged = []
+
+    class Dev:
+        def info(self):
+            return _info_with(hp.VMON_BAD)
+
+    Session(Dev(), None, log=logged.append)
+    assert logged == [vmon_warning(hp.VMON_BAD)] and logged[0]
+    assert [vmon_warning(v) for v in (hp.VMON_NONE, hp.VMON_LOADED, hp.VMON_STORED)] == [None] * 3
+
+
+def _info_with(state):
+    import dataclasses
+
+    return dataclasses.replace(_info(2), vmon_state=state)
