@@ -271,16 +271,19 @@ def store_on_device(d, fits: list[ChannelFit], n_channels: int | None = None) ->
     return back
 
 
-def put_back(d, old: dict, n_channels: int) -> None:
-    """Apply (in RAM, never stored) the corrections `old` ({ch: CalInfo}) read before the
-    self-test: every channel of the device in one CH_ALL command (all or nothing), one channel
-    with its own command."""
-    if sorted(old) == list(range(n_channels)) and n_channels > 1:
-        d.set_vmon_all([(old[ch].vmon_gain_ppm, old[ch].vmon_offset_mv, old[ch].dac_gain_ppm)
-                        for ch in range(n_channels)])
+def apply_in_ram(d, values: dict, n_channels: int) -> None:
+    """Apply (in RAM, never stored) values {ch: (gain_ppm, offset_mv, dac_gain_ppm)}: every
+    channel of the device in one CH_ALL command (all or nothing), one channel with its own."""
+    if sorted(values) == list(range(n_channels)) and n_channels > 1:
+        d.set_vmon_all([values[ch] for ch in range(n_channels)])
     else:
-        for ch, c in old.items():
-            d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv, dac_gain_ppm=c.dac_gain_ppm)
+        for ch, (g, off, dac) in values.items():
+            d.set_vmon(ch, g, off, dac_gain_ppm=dac)
+
+
+def put_back(d, old: dict, n_channels: int) -> None:
+    """The corrections `old` ({ch: CalInfo}) read before the self-test, applied again in RAM."""
+    apply_in_ram(d, {ch: (c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for ch, c in old.items()}, n_channels)
 
 
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
@@ -386,8 +389,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
         old = {ch: d.calibration(ch) for ch in chans}
         done = False
         try:
-            for ch in chans:  # the raw monitor: the correction off in RAM only
-                d.set_vmon(ch, 0, 0)
+            apply_in_ram(d, {ch: (0, 0, 0) for ch in chans}, info.n_channels)  # the raw path: off in RAM only
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
             for line in report_lines(fits, load_ohm):
