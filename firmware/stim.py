@@ -1104,7 +1104,7 @@ class Stimulator:
                 ok = store is not None and store(values)  # one file for every channel: all or nothing
                 self.board.feed_watchdog()
             except Exception:  # noqa: BLE001 - e.g. MemoryError building the file: answered, nothing applied
-                ok = False
+                pass  # (ok stays False unless the file was written before the error: then it is applied)
             finally:
                 if locked:
                     self._enter()
