@@ -243,6 +243,7 @@ class SimBoard:
         self.analog = AnalogPath(cfg, n_channels, ideal, noise_counts)
         self.ideal = ideal
         self.dac_gain_applied = not ideal  # the ideal board has no DAC: a stored DAC gain changes nothing (GET_INFO)
+        self.dac_exact = ideal  # ... its current is exactly the commanded one (no margin for a DAC error: stim)
         self.noise = self.analog.noise
         self.rng = random
         random.seed(seed)

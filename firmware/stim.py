@@ -292,9 +292,16 @@ class Stimulator:
         # ... and its DAC path applies it (the ideal simulated board has no DAC: it keeps the
         # commanded current whatever is stored; GET_INFO's INFO_FLAG_DAC_GAIN tells the host)
         self._dac_applied = self._dac_gain and getattr(board, "dac_gain_applied", True)
+        # a board whose current is exactly the commanded one (the ideal simulated board) needs
+        # no margin for an unmeasured DAC gain (_dac_limits)
+        self._dac_exact = getattr(board, "dac_exact", False)
+        # what the board's flash holds for every channel the board has (a store rewrites the
+        # whole file: the lines of channels this Stimulator does not drive are kept)
+        self._vmon_file = list(vm) if vm else []
+        while len(self._vmon_file) < self.n:
+            self._vmon_file.append(None)
         for c in self.chans:
-            c.hard_i_d = self.hard_i
-            c.hard_q_d = self.hard_q
+            self._dac_limits(c, 0)
             v = vm[c.ch] if vm and c.ch < len(vm) else None
             if v:
                 c.vmon_stored = v
@@ -993,14 +1000,7 @@ class Stimulator:
         if dac_ppm != c.vmon_dac:  # the same code now delivers another current: calibrate again
             c.have_cal = False
         c.vmon_dac = dac_ppm
-        hi = self.hard_i
-        hq = self.hard_q
-        if 0 < dac_ppm < 1000000:  # the board reports code x LSB x gain: a stored gain below the true one
-            f = dac_ppm // 100  # would let the real current past the limits, so the reported one is held
-            hi = hi * f // 10000  # to the limits x gain (products < 2**30: hard_i <= 2**16, f <= 11000)
-            hq = (hq // 10000) * f + (hq % 10000) * f // 10000
-        c.hard_i_d = hi
-        c.hard_q_d = hq
+        self._dac_limits(c, dac_ppm)
         if self._dac_gain:
             self.board.set_dac_gain(c.ch, dac_ppm)
         c.ai = 0  # _pulse: no pulse until _output has set the amplitude with the new scale
@@ -1013,6 +1013,24 @@ class Stimulator:
         else:
             c.vmon_k = 0
             c.vmon_o = 0
+
+    def _dac_limits(self, c, dac_ppm):
+        # the hard limits on the current (and charge) the board reports it delivers, for a
+        # DAC gain of dac_ppm applied (0: none measured). The board reports code x LSB x gain:
+        # a stored gain below the true one would let the real current past the limits, so the
+        # reported one is held to the limits x that gain; with no gain applied (a fresh board,
+        # a file ignored at boot, a self-test without --scope) the DAC's own error can be up to
+        # the window's edge, so the limits are held to the limits x VMON_DAC_PPM_MIN (docs/safety.md)
+        hi = self.hard_i
+        hq = self.hard_q
+        f = dac_ppm // 100
+        if not self._dac_exact and (not dac_ppm or not self._dac_applied):  # no gain applied
+            f = hp.VMON_DAC_PPM_MIN // 100
+        if 0 < f < 10000:
+            hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 11000
+            hq = (hq // 10000) * f + (hq % 10000) * f // 10000
+        c.hard_i_d = hi
+        c.hard_q_d = hq
 
     def _vmon_bad(self, r, o):
         # the OUT byte of the first refused word of one channel's correction at o (its
@@ -1049,6 +1067,7 @@ class Stimulator:
         lo = ch
         hi = ch + 1
         step = 0  # one channel: its words at O_ARG + 4
+        o = hp.O_ARG + 4 + hp.VMON_STRIDE  # after them: reserved, 0
         if ch == hp.CH_ALL:
             lo = 0
             hi = self.n
@@ -1058,6 +1077,10 @@ class Stimulator:
                 if r[o]:
                     return self._ack(r, hp.RES_BAD_CHANNEL, o)
                 o += 1
+        while o < hp.O_CRC:  # reserved up to the CRC: 0 (a one-channel command in CH_ALL's layout is refused)
+            if r[o]:
+                return self._ack(r, hp.RES_BAD_FORMAT, o)
+            o += 1
         k = lo
         while k < hi:
             bad = self._vmon_bad(r, hp.O_ARG + 4 + step * (k - lo))
@@ -1068,9 +1091,10 @@ class Stimulator:
             locked = self.locked
             if locked:  # everything from here allocates (a bound method, the list, the file)
                 self._leave()
+            ok = False
             try:
                 store = getattr(self.board, "store_vmon", None)
-                values = [x.vmon_stored for x in self.chans]  # the others as the flash holds them
+                values = list(self._vmon_file)  # the others as the flash holds them (undriven channels too)
                 for k in range(lo, hi):
                     o = hp.O_ARG + 4 + step * (k - lo)
                     g = hp.get_i32(r, o)
@@ -1079,14 +1103,18 @@ class Stimulator:
                 self.board.feed_watchdog()  # a flash write may erase a sector: the full watchdog time for it
                 ok = store is not None and store(values)  # one file for every channel: all or nothing
                 self.board.feed_watchdog()
-                if ok:
-                    for k in range(lo, hi):
-                        self.chans[k].vmon_stored = values[k]
+            except Exception:  # noqa: BLE001 - e.g. MemoryError building the file: answered, nothing applied
+                pass  # (ok stays False unless the file was written before the error: then it is applied)
             finally:
                 if locked:
                     self._enter()
             if not ok:
                 return self._ack(r, hp.RES_STORE_FAILED, 0)
+            self._vmon_file = values  # (heap-locked again from here: no range(), no new objects)
+            k = lo
+            while k < hi:
+                self.chans[k].vmon_stored = values[k]
+                k += 1
             self.vmon_state = hp.VMON_STORED
         k = lo
         while k < hi:

@@ -18,7 +18,7 @@ import hid_protocol as hp
 import sensation_core as sc
 
 from . import __version__
-from .device import Device, DeviceError
+from .device import Device, DeviceError, vmon_warning
 from .files import FileProblem, Outputs, dump_json
 from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
@@ -38,6 +38,13 @@ class Terminated(KeyboardInterrupt):
 
 def say(*a):
     print(*a, flush=True)
+
+
+def _warn_vmon(info) -> None:
+    """One line on stderr when the board ignored its stored correction at boot (device.vmon_warning)."""
+    w = vmon_warning(info.vmon_state)
+    if w:
+        print(f"steadytouch: {w}", file=sys.stderr, flush=True)
 
 
 def _finite(name, v, lo=-math.inf, hi=math.inf):
@@ -227,7 +234,9 @@ def cmd_arm(a) -> int:
     prog = Progress("arm", a.seconds)
     with open_transport(a.device) as t:
         d = Device(t)
-        n = d.info().n_channels
+        info = d.info()
+        _warn_vmon(info)
+        n = info.n_channels
         chans = set(range(n)) if ch == hp.CH_ALL else {ch}
         stopped: dict[int, int] = {}
         t_end = time.monotonic() + a.seconds if a.seconds else None
@@ -378,7 +387,9 @@ def cmd_calibrate(a) -> int:
     _precheck("calibrate", vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
     with open_transport(a.device) as t:
         d = Device(t)
-        _within_soft_limits(d.info(), vals["i0_ua"], vals["t0_us"])
+        info = d.info()
+        _warn_vmon(info)
+        _within_soft_limits(info, vals["i0_ua"], vals["t0_us"])
         ack = d.calibrate(vals["i0_ua"], vals["t0_us"], vals["x_star_ohm"], vals["y_star_pc"], _channel(a))
         say(f"{a.device}: {ack.words()} (I0 {vals['i0_ua']} uA, T0 {vals['t0_us']} us, "
             f"x* {vals['x_star_ohm']} ohm, y* {vals['y_star_pc']} pC; Rp0 is measured on the first pulse after arm)")
@@ -424,6 +435,7 @@ def _json_number(path, data: dict, key: str, whole=False):
 # ------------------------------------------------------------ record / monitor
 def device_meta(d: Device, url: str) -> dict:
     i: Info = d.info()
+    _warn_vmon(i)
     meta = {"firmware": i.firmware, "board": i.board, "device": url, "i_min_ua": i.i_min_ua,
             "i_max_ua": i.i_max_ua, "t_min_us": i.t_min_us, "t_max_us": i.t_max_us, "q_max_pc": i.q_max_pc,
             "hard_i_max_ua": i.hard_i_max_ua, "hard_q_max_pc": i.hard_q_max_pc, "rate_hz": i.rate_hz}

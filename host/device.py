@@ -36,6 +36,17 @@ class DeviceError(Exception):
         self.refused = refused
 
 
+def vmon_warning(vmon_state: int) -> str | None:
+    """One line when the board ignored its stored correction at boot (GET_INFO's vmon_state VMON_BAD: a file
+    unreadable, or stored under other windows than this firmware's), else None. Every channel then
+    runs uncorrected: its Rp off by the board's own errors, its hard current limit held low."""
+    if vmon_state != hp.VMON_BAD:
+        return None
+    return ("warning: the board ignored its stored correction at boot (vmon_cal.txt unreadable or outside this "
+            "firmware's windows): every channel runs uncorrected, its hard current limit held "
+            f"{100 - hp.VMON_DAC_PPM_MIN / 1e4:g} % low; run `steadytouch selftest` again")
+
+
 class Device:
     def __init__(self, transport: Transport):
         self.t = transport

@@ -160,6 +160,7 @@ def _st_state():
             r['frames'] = run.frames
             r['errors'] = run.errors
             r['last_error'] = repr(run.last_error) if run.last_error is not None else None
+            r['vmon'] = getattr(run, 'vmon_state', None)
     return r
 print(repr(_st_state()))
 """
@@ -287,6 +288,7 @@ class BoardState:
     frames: int | None = None
     errors: int | None = None
     last_error: str | None = None
+    vmon: int | None = None  # the loop's hp.VMON_* (its stored correction as read at boot), if it tells
 
     @classmethod
     def read(cls, link: BoardLink) -> BoardState:
@@ -516,7 +518,18 @@ def boot_check_hid(port: str, url: str, want: str, timeout_s: float, say):
                          f"{TELEMETRY_S:g} s: its loop is not running; see `mpremote connect {port} repl`")
     _step(say, 7, f"boot check over HID ({url}): steadytouch {info.firmware} on {info.board} answered GET_INFO, "
           f"the version flashed; {len(telemetry)} telemetry reports in {TELEMETRY_S:g} s, no firmware error")
+    _say_vmon(info.vmon_state, say)
     return info
+
+
+def _say_vmon(vmon_state, say) -> None:
+    """The board's stored correction as the new firmware read it at boot: a file it ignored (stored
+    under other windows, or unreadable) is one warning line (the firmware is flashed all the same)."""
+    from .device import vmon_warning
+
+    w = vmon_warning(vmon_state)
+    if w:
+        say("      " + w)
 
 
 def _raise_boot_log(st: BoardState, say) -> None:
@@ -586,6 +599,7 @@ def boot_check(port: str, timeout_s: float, say, want: str | None = None, why: s
                              "flashed: run flash again")
         _step(say, 7, f"boot check: steadytouch {st.fw_text()} ran {st.frames} frames with no error; "
               f"version read back over the serial REPL, not over HID ({why}); restarting it")
+        _say_vmon(st.vmon, say)
     finally:
         link.reset()
     return st

@@ -290,7 +290,7 @@ def decode(report: bytes):
             vmon_state=report[hp.O_INFO_VMON],
             flags=report[hp.O_INFO_FLAGS],
         )
-        _need(not i.flags & ~hp.INFO_FLAG_DAC_GAIN, "flags", f"0x{i.flags:x}", f"bits of 0x{hp.INFO_FLAG_DAC_GAIN:x}")
+        # flags: bits this host does not know are ignored (a later firmware may add one; docs/protocol.md)
         _need(i.vmon_state in VMON_STATE_WORDS, "vmon_state", i.vmon_state, f"0..{max(VMON_STATE_WORDS)}")
         _check_info(i)
         return i
@@ -530,13 +530,31 @@ class Commands:
 
     def set_vmon_all(self, values, store=False) -> bytes:
         """Every channel's correction in one command: values = [(gain_ppm, offset_mv, dac_gain_ppm)
-        per channel, 1..4 of them]; the device checks all, writes its flash once (store) and
+        per channel]: exactly the device's channel count once GET_INFO told it (know()); before
+        that 1..4, and the device reads the words of a channel it has but was not given as 0
+        (uncorrected, DAC nominal). The device checks all, writes its flash once (store) and
         applies all, or changes nothing."""
-        values = list(values)
+        shape = "a list of (gain_ppm, offset_mv, dac_gain_ppm), one per channel"
         if self.check:
+            if isinstance(values, (str, bytes, dict)):
+                raise CommandError(f"monitor correction: {values!r} is not {shape}")
+            try:
+                values = list(values)
+            except TypeError:
+                raise CommandError(f"monitor correction: {values!r} is not {shape}") from None
+            n = self.frame[0] if self.frame is not None else None
+            if n is not None and len(values) != n:
+                raise CommandError(f"monitor correction for {len(values)} channel(s): the device has {n}, "
+                                   f"give exactly {n}")
             if not 1 <= len(values) <= 4:
                 raise CommandError(f"monitor correction for {len(values)} channels: 1..4")
+            for k, v in enumerate(values):
+                if not isinstance(v, (tuple, list)) or len(v) != 3:
+                    raise CommandError(f"monitor correction of channel {k}: {v!r} is not (gain_ppm, offset_mv, "
+                                       "dac_gain_ppm)")
             values = [check_vmon(*v) for v in values]
+        else:
+            values = list(values)
         op = hp.VMON_STORE if store else hp.VMON_APPLY
         return bytes(hp.cmd_set_vmon_all(bytearray(64), op, values, self._next()))
 

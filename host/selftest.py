@@ -12,7 +12,10 @@ simulated board's flash folder, simrun.sim_flash_dir) and apply it; GET_INFO
 reads it back; the firmware reads the file at every boot. The raw monitor is
 measured with the correction switched off in RAM only (VMON_APPLY 0, 0), so an
 interrupted self-test leaves the stored correction as it was (it returns at the
-next reset; the self-test also puts the old one back when it stops).
+next reset; the self-test also puts the old one back, in one command, when it stops
+before the store). Once the store command was sent and its answer is lost, nothing is
+put back: the flash may hold the new correction; the message says to reset the board
+and run `steadytouch info`.
 
 What a resistor can and cannot tell (docs/hardware.md, "First-run self-test"):
 the measured voltage is g_mon x g_dac x I_nominal x R + offset, so one resistor
@@ -56,7 +59,17 @@ VP_MAX_PERMILLE = 850  # stay below 85 % of compliance (the electrode-off check 
 
 
 class SelfTestError(ValueError):
-    """The self-test cannot run or its result is out of range; the message says why."""
+    """The self-test cannot run or its result is out of range; the message says why.
+    flash_touched: the store command reached (or may have reached) the device, so the
+    self-test must not put the old correction back in RAM (the flash may hold the new one)."""
+
+    def __init__(self, message: str, flash_touched: bool = False):
+        super().__init__(message)
+        self.flash_touched = flash_touched
+
+
+RESET_AND_INFO = ("reset the board (unplug it and plug it in again) and run `steadytouch info`: after a reset it "
+                  "applies and shows what its flash holds")
 
 
 @dataclass
@@ -241,19 +254,36 @@ def store_on_device(d, fits: list[ChannelFit], n_channels: int | None = None) ->
             raise SelfTestError(f"the device refused the store ({e}): nothing was stored, every channel keeps the "
                                 "correction it had") from None
         raise SelfTestError(f"the device stopped answering during the store ({e}): the store is one command, so "
-                            "it holds either every channel's new correction or every old one; `steadytouch info` "
-                            "shows which") from None
+                            "its flash holds either every channel's new correction or every old one, and what it "
+                            f"applies now may differ from its flash; {RESET_AND_INFO}",
+                            flash_touched=True) from None
     back = []
     for f in fits:
         c = d.calibration(f.channel)
         if (c.vmon_gain_ppm, c.vmon_offset_mv, c.vmon_state) != (f.gain_ppm, round(f.offset_mv), hp.VMON_STORED):
             raise SelfTestError(f"ch{f.channel}: the device reads back {c.vmon_gain_ppm} ppm, {c.vmon_offset_mv} mV "
-                                f"(state {c.vmon_state}) after storing {f.gain_ppm} ppm, {round(f.offset_mv)} mV")
+                                f"(state {c.vmon_state}) after storing {f.gain_ppm} ppm, {round(f.offset_mv)} mV; "
+                                + RESET_AND_INFO, flash_touched=True)
         if c.dac_gain_ppm != f.dac_gain_ppm:
             raise SelfTestError(f"ch{f.channel}: the device reads back a DAC gain of {c.dac_gain_ppm} ppm after "
-                                f"storing {f.dac_gain_ppm} ppm")
+                                f"storing {f.dac_gain_ppm} ppm; " + RESET_AND_INFO, flash_touched=True)
         back.append(c)
     return back
+
+
+def apply_in_ram(d, values: dict, n_channels: int) -> None:
+    """Apply (in RAM, never stored) values {ch: (gain_ppm, offset_mv, dac_gain_ppm)}: every
+    channel of the device in one CH_ALL command (all or nothing), one channel with its own."""
+    if sorted(values) == list(range(n_channels)) and n_channels > 1:
+        d.set_vmon_all([values[ch] for ch in range(n_channels)])
+    else:
+        for ch, (g, off, dac) in values.items():
+            d.set_vmon(ch, g, off, dac_gain_ppm=dac)
+
+
+def put_back(d, old: dict, n_channels: int) -> None:
+    """The corrections `old` ({ch: CalInfo}) read before the self-test, applied again in RAM."""
+    apply_in_ram(d, {ch: (c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for ch, c in old.items()}, n_channels)
 
 
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
@@ -359,8 +389,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
         old = {ch: d.calibration(ch) for ch in chans}
         done = False
         try:
-            for ch in chans:  # the raw monitor: the correction off in RAM only
-                d.set_vmon(ch, 0, 0)
+            apply_in_ram(d, {ch: (0, 0, 0) for ch in chans}, info.n_channels)  # the raw path: off in RAM only
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
             for line in report_lines(fits, load_ohm):
@@ -375,7 +404,13 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             worst = max(f.worst_rp_err_before for f in fits)
             if not store:
                 return 0
-            back = store_on_device(d, fits, info.n_channels)
+            try:
+                back = store_on_device(d, fits, info.n_channels)
+            except SelfTestError as e:
+                # the store reached the device, or may have, with its outcome unknown: no undo (the
+                # flash may hold the new correction; RAM then must not hold the old one)
+                done = e.flash_touched
+                raise
             done = True
             say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
                 f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
@@ -392,8 +427,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             if not done:  # put back what the device applied before (its flash was not touched)
                 with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
                     d.disarm()
-                    for ch, c in old.items():
-                        d.set_vmon(ch, c.vmon_gain_ppm, c.vmon_offset_mv, dac_gain_ppm=c.dac_gain_ppm)
+                    put_back(d, old, info.n_channels)
     if save_dir is not None:
         say(f"a copy on this computer: {save(fits, Path(save_dir))}")
     if sim:  # a reset: the simulated board boots again and reads its flash

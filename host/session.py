@@ -24,7 +24,7 @@ import numpy as np
 import hid_protocol as hp
 import sensation_core as sc
 
-from .device import Device
+from .device import Device, vmon_warning
 from .protocol import Telemetry
 
 # a delivered pulse is at most one DAC step (10 mA / 4096 = 2.44 uA, whole uA) below the command
@@ -61,6 +61,8 @@ class Session:
         self.participant = participant
         self.log = log
         info = dev.info()
+        if vmon_warning(info.vmon_state):
+            log(vmon_warning(info.vmon_state))
         self.lim = (info.i_min_ua, info.i_max_ua, info.t_min_us, info.t_max_us, info.q_max_pc)
         self.n_present = 0
 

@@ -145,8 +145,9 @@ RES_STORE_FAILED = const(9)  # SET_VMON: the board could not write its flash (no
 # DAC's full scale by it, so the current it reports, the Rp and the hard limits
 # count the current delivered. ch = CH_ALL: every channel in one command, channel
 # k's three words at O_ARG + 4 + VMON_STRIDE * k (channel 0's where a one-channel
-# command has them; the words of channels the board lacks must be 0): all checked
-# before anything changes, VMON_STORE writes the one file once (all or nothing).
+# command has them; the words of channels the board lacks must be 0; the bytes after
+# the words, up to the CRC, are reserved: 0, else RES_BAD_FORMAT with the byte): all
+# checked before anything changes, VMON_STORE writes the one file once (all or nothing).
 # Refused while any channel is armed (a flash write stalls the loop for tens of
 # ms) with RES_BAD_STATE, outside the ranges with RES_OUT_OF_RANGE (detail: the
 # field), a failed flash write with RES_STORE_FAILED: nothing changes.
@@ -226,6 +227,7 @@ BOARD_LEN = const(16)
 O_INFO_VMON = const(60)  # u8 VMON_NONE / LOADED / BAD / STORED
 O_INFO_FLAGS = const(61)  # u8 board flags (0 from firmware before it): INFO_FLAG_*
 INFO_FLAG_DAC_GAIN = const(0x01)  # the board's DAC path applies a stored DAC gain (else stored, not applied)
+# (other bits: for later firmware; a host ignores bits it does not know)
 # calibration report (REP_CAL)
 O_CAL_CH = const(12)
 O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected,

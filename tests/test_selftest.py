@@ -358,3 +358,100 @@ def test_info_says_a_dac_gain_is_stored_but_not_applied_on_the_ideal_board(tmp_p
     assert ("ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123 stored, not applied: this board has no "
             "gain-corrected DAC") in ideal.stdout, ideal.stdout
     assert "ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123\n" in real.stdout, real.stdout
+
+
+class Recorder:
+    """A transport wrapper that records the OUT reports; with lose_store, the answer to a CH_ALL
+    VMON_STORE is lost (the device carried it out) and the link dies `then` reports later."""
+
+    def __init__(self, t, lose_store=False, then=99):
+        self.t, self.realtime, self.answer_s = t, t.realtime, getattr(t, "answer_s", 2.0)
+        self.lose_store, self.then = lose_store, then
+        self.sent, self.store_tag, self.after = [], None, None
+
+    def write(self, report):
+        import hid_protocol as hp
+        from steadytouch.transport import TransportError
+
+        if self.after is not None:
+            self.after += 1
+            if self.after > self.then:
+                raise TransportError("link gone (injected)")
+        if (self.lose_store and report[hp.O_OUT_CMD] == hp.CMD_SET_VMON and report[hp.O_OUT_CH] == hp.CH_ALL
+                and report[hp.O_ARG] == hp.VMON_STORE):
+            self.store_tag, self.after = report[hp.O_OUT_TAG], 0
+        self.sent.append(bytes(report))
+        self.t.write(report)
+
+    def read(self, timeout_s):
+        import hid_protocol as hp
+
+        raw = self.t.read(timeout_s)
+        if raw and raw[0] == hp.REP_ACK and raw[hp.O_CMD] == hp.CMD_SET_VMON and raw[hp.O_TAG] == self.store_tag:
+            return None  # the answer is lost
+        return raw
+
+
+def _selftest_through(tmp_path, monkeypatch, wrap, **kw):
+    """st.run on sim://steady with the old correction stored; (error message, what the device applies
+    in RAM when the self-test gave up, the flash's values, the SET_VMON reports sent)."""
+    import contextlib
+
+    import hid_protocol as hp
+    import vmon_cal
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n0 1020000 100 0\n1 990000 -50 0\n")
+    seen = {}
+
+    @contextlib.contextmanager
+    def opener(url):
+        with open_transport(url) as t:
+            w = wrap(t)
+            try:
+                yield w
+            finally:
+                d = Device(t)  # what the device applies now, before any reset
+                seen["ram"] = [(c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for c in
+                               (d.calibration(0), d.calibration(1))]
+                seen["vmon"] = [r for r in w.sent if r[hp.O_OUT_CMD] == hp.CMD_SET_VMON]
+
+    with pytest.raises(st.SelfTestError) as e:
+        st.run("sim://steady?load=10000", 10000, None, 2, True, None, lambda s: None, opener, **kw)
+    flash = vmon_cal.parse((tmp_path / "vmon_cal.txt").read_text(), 2)
+    return str(e.value), seen["ram"], flash, seen["vmon"]
+
+
+@pytest.mark.parametrize("then", [0, 99])
+def test_a_store_whose_answer_is_lost_is_not_undone_and_says_reset_then_info(tmp_path, monkeypatch, then):
+    """Review of d560dd3: the store's answer lost (the device stored and applied the new values):
+    the self-test put the old values back in RAM channel by channel, so RAM held the old, the flash
+    the new (state 'stored'), or, the link dying mid-restore, channel 0 old and channel 1 new.
+    Now nothing is sent after the store; the message says to reset the board and run info."""
+    import hid_protocol as hp
+
+    msg, ram, flash, vmon = _selftest_through(tmp_path, monkeypatch, lambda t: Recorder(t, True, then))
+    assert "reset the board" in msg and "steadytouch info" in msg, msg
+    assert flash[0][:2] != (1020000, 100) and flash[1][:2] != (990000, -50)  # the device did store
+    assert ram == [tuple(v) for v in flash]  # RAM holds what the flash holds
+    assert vmon[-1][hp.O_ARG] == hp.VMON_STORE  # nothing after the store
+
+
+def test_a_self_test_that_stops_before_the_store_puts_the_old_values_back_in_one_command(tmp_path, monkeypatch):
+    """Stopping before the store (here: the measurement fails) restores what the device applied
+    before with one all-channel apply, never stored: all or nothing, as the store."""
+    import hid_protocol as hp
+
+    def broken(d, pts, chans, label, kept):
+        raise st.SelfTestError("injected: the load came off")
+
+    msg, ram, flash, vmon = _selftest_through(tmp_path, monkeypatch, Recorder, measure_with=broken)
+    assert "injected" in msg
+    assert ram == [(1020000, 100, 0), (990000, -50, 0)] and flash == ram
+    last = vmon[-1]
+    assert (last[hp.O_OUT_CH], last[hp.O_ARG]) == (hp.CH_ALL, hp.VMON_APPLY)  # one command, RAM only
+    assert [hp.get_i32(last, hp.O_ARG + 4 + hp.VMON_STRIDE * k + w) for k in (0, 1) for w in (0, 4, 8)] == [
+        1020000, 100, 0, 990000, -50, 0]
+    assert sum(1 for r in vmon if r[hp.O_ARG] == hp.VMON_STORE) == 0

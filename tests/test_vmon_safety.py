@@ -50,7 +50,7 @@ result(out=out)
 def test_a_dac_gain_stored_too_low_keeps_the_physical_charge_within_the_hard_limits():
     _, res, _ = run_fw(SETUP + """
 out = []
-for dac in (0, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX):
+for dac in (0, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX, 1000000):
     s, board, clock = make("steady", 20)
     b = bytearray(64)
     r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac)),
@@ -65,8 +65,8 @@ result(out=out)
     for dac, acks, stop, q_reported, q_physical, hard_q in res[0]["out"]:
         assert acks == [hp.RES_OK] * 4, (dac, acks)
         assert q_reported <= hard_q and q_physical <= hard_q, (dac, stop, q_reported, q_physical)  # was 11.03 uC
-    nominal = res[0]["out"][0]
-    assert nominal[2] == hp.STOP_NONE and nominal[3] > 0  # the nominal DAC still pulses at its limit
+    measured = res[0]["out"][3]
+    assert measured[2] == hp.STOP_NONE and measured[3] > 0  # a DAC measured nominal (1.0) still pulses at its limit
 
 
 def test_a_changed_dac_gain_needs_a_new_calibration_before_arming():
@@ -153,3 +153,47 @@ result(at_w=at_w, past=c.vp_raw)
 """)
     r = res[0]
     assert r["at_w"] == r["past"] == 1000 * 27000 // 1000
+
+
+def test_no_dac_gain_applied_holds_the_hard_limits_to_the_dac_windows_low_edge(tmp_path):
+    """Review of d560dd3 (finding 2c): a correction file stored under the old, wider windows is
+    ignored at boot (VMON_BAD); every DAC then runs uncorrected and a realistic board's ch1 (DAC gain
+    1.006) delivered 10058 uA at its hard limit of 10000. With no DAC gain applied (a fresh board, a
+    file ignored, a self-test without --scope) the reported current and charge are held to the hard
+    limits x VMON_DAC_PPM_MIN: a DAC whose gain is anywhere in its window stays within them. The
+    ideal board (its current exactly the commanded one) keeps the full limits."""
+    d = str(tmp_path)
+    (tmp_path / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 1050000\n1 0 0 1006000\n")
+    _, res, _ = run_fw(SETUP + f"""
+out = {{}}
+for name, flash, ideal in (("fresh", None, False), ("bad file", {d!r}, False), ("ideal", None, True)):
+    clock = VirtualClock(0)
+    bd = SimBoard(cfg, clock, sim_electrode.scenario("steady"), 2, 1, MemoryUSB(True), noise_counts=0.0,
+                  load_ohm=1000, flash_dir=flash, ideal=ideal)
+    s = stim.Stimulator(bd, clock, cfg, 2, 20, 0)
+    rows = []
+    for c in s.chans:
+        bd.analog.dac_gain[c.ch] = 1.0 if ideal else hp.VMON_DAC_PPM_MAX / 1e6  # the worst a healthy DAC can be
+        rep = bd.set_amplitude(c.ch, c.hard_i_d)  # the most the hard limit lets the board report
+        rows.append([c.hard_i_d, c.hard_q_d, rep, bd.analog.physical_ua(c.ch, bd.code[c.ch])])
+    b = bytearray(64)
+    r = [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)),
+         cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+    s.run(4)
+    pulses = [[c.stop, c.di, bd.last_i_ua[c.ch]] for c in s.chans]
+    out[name] = [s.vmon_state, rows, r, pulses, s.hard_i, s.hard_q]
+result(**out)
+""")
+    r = res[0]
+    assert r["bad file"][0] == hp.VMON_BAD and r["fresh"][0] == hp.VMON_NONE
+    for name in ("fresh", "bad file"):
+        state, rows, acks, pulses, hard_i, hard_q = r[name]
+        assert acks == [hp.RES_OK] * 3
+        for hid, hqd, rep, phys in rows:
+            assert hid == hard_i * hp.VMON_DAC_PPM_MIN // 1000000 and hqd == hard_q * hp.VMON_DAC_PPM_MIN // 1000000
+            assert rep <= hid and phys <= hard_i, (name, rows)  # was 10350 uA at a gain of 1.035
+        for stop, di, phys in pulses:  # a pulse at the hard limit's current is stopped, never delivered
+            assert stop == hp.STOP_LIMIT and phys <= hard_i, (name, pulses)
+    state, rows, acks, pulses, hard_i, hard_q = r["ideal"]
+    assert [row[0] for row in rows] == [hard_i, hard_i] and all(p[0] == hp.STOP_NONE and p[1] > 0 for p in pulses)

@@ -95,3 +95,34 @@ def test_a_corrupt_file_boots_uncorrected_and_says_so(chip_host, cfg, content):
     assert info[0].vmon_state == hp.VMON_BAD and cal[0].vmon_state == hp.VMON_BAD
     assert (cal[0].vmon_gain_ppm, cal[0].flags & hp.CAL_FLAG_VMON) == (0, 0)
     assert abs(_rp(reps, 0) - R_OHM) <= 25 and abs(_rp(reps, 1) - R_OHM) <= 25
+
+
+def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_limit_low(chip_host, cfg):
+    """Review of d560dd3 (findings 4, 2c) on the rp2 board: a CH_ALL SET_VMON with a byte set in the
+    reserved 56..61 is refused (RES_BAD_FORMAT, the byte) and changes nothing; with no DAC gain
+    applied (a fresh board) a pulse at the hard current limit is stopped (STOP_LIMIT: the DAC's own
+    gain error could push it past), while a channel whose DAC gain was measured (1.0) pulses there."""
+    cmd = Commands()
+    chip = chip_host.boot(chip_host.image)
+    junk = bytearray(hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1010000, 10, 0), (0, 0, 1000000)], tag=91))
+    junk[56] = 0x5A
+    hp.seal(junk)
+    i_ua, t_us = cfg.HARD_I_MAX_UA, 100
+    sent = [cmd.get_info(), bytes(junk), cmd.get_info(0), cmd.get_info(1),
+            cmd.set_vmon(1, 0, 0, dac_gain_ppm=1000000), cmd.set_mode(sc.MODE_OPEN_LOOP),
+            cmd.calibrate(i_ua, t_us, 0, 0), cmd.arm()]
+    chip.wiring(cfg, cfg.N_CHANNELS)
+    for ch in range(cfg.N_CHANNELS):
+        chip.load(ch, rp_ohm=1000)  # 10 V at the hard limit: well within compliance
+    chip.hid(send=sent)
+    with pytest.raises(ChipError, match="timeout"):
+        chip.exec("import main", timeout_ms=800)
+    reps = [decode(bytes.fromhex(x)) for _t, x in chip.hid()["reports"]]
+    acks = [(a.result, a.detail) for a in reps if isinstance(a, Ack) and a.command == hp.CMD_SET_VMON]
+    assert acks == [(hp.RES_BAD_FORMAT, 56), (hp.RES_OK, 0)]
+    cal = [r for r in reps if isinstance(r, CalInfo)]
+    assert [(c.vmon_gain_ppm, c.dac_gain_ppm) for c in cal] == [(0, 0), (0, 0)]  # the refused command changed nothing
+    tel = {ch: [t for t in reps if isinstance(t, Telemetry) and t.channel == ch] for ch in (0, 1)}
+    assert any(t.stop == hp.STOP_LIMIT for t in tel[0]) and not any(t.i_ua for t in tel[0]), tel[0][-3:]
+    pulsed = [t for t in tel[1] if t.i_ua]
+    assert len(pulsed) >= 3 and all(t.stop == hp.STOP_NONE and i_ua - 5 <= t.i_ua <= i_ua for t in pulsed)

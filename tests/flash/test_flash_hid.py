@@ -255,3 +255,27 @@ def test_serve_prints_both_urls_and_a_blank_board_has_no_hid_device(tmp_path):
         p.send_signal(signal.SIGINT)
         p.wait(timeout=30)
     assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
+
+
+def test_a_stored_correction_the_new_firmware_ignores_is_one_warning_line(monkeypatch, tmp_path):
+    """Review of d560dd3 (finding 2b): a correction file stored under the old, wider windows is
+    ignored by the firmware just flashed (every channel uncorrected); the boot check reads GET_INFO
+    anyway, so it says so in one line (the flash itself succeeds); the serial fallback too."""
+    import hid_protocol as hp
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    said = []
+    for text, warned in (("steadytouch monitor correction v1\n0 1095000 0 0\n", True),
+                         ("steadytouch monitor correction v1\n0 1010000 0 0\n", False)):
+        (tmp_path / "vmon_cal.txt").write_text(text)
+        fake_serial(monkeypatch)
+        said.clear()
+        F.boot_check_hid("PORT", "sim://steady", F.fw_version(), 60, said.append)
+        lines = [s for s in said if "ignored its stored correction" in s]
+        assert len(lines) == (1 if warned else 0), said
+        assert all("`steadytouch selftest` again" in s for s in lines)
+    said.clear()
+    fake_serial(monkeypatch, state(fw=(0, 1, 0), frames=50, errors=0, vmon=hp.VMON_BAD))
+    monkeypatch.setattr(F.time, "sleep", lambda s: None)
+    F.boot_check("PORT", 5, said.append, None)
+    assert [s for s in said if "ignored its stored correction" in s], said
