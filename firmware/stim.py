@@ -306,7 +306,6 @@ class Stimulator:
             if v:
                 c.vmon_stored = v
                 self._vmon_apply(c, v[0], v[1], v[2] if len(v) > 2 else 0)
-        self._fit_limits()
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -965,7 +964,7 @@ class Stimulator:
             if self.chans[k].armed:
                 return self._ack(r, hp.RES_BAD_STATE, 0)
             k += 1
-        if not 1 <= i_max <= self._held(0):  # the hard limit every channel may deliver (_dac_limits)
+        if not 1 <= i_max <= self.hard_i:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
@@ -973,7 +972,7 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
-        if not i_min * t_min <= q_max <= self._held(1):
+        if not i_min * t_min <= q_max <= self.hard_q:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
         k = 0
         while k < self.n:  # a calibration outside the new limits must be sent again
@@ -1032,46 +1031,6 @@ class Stimulator:
             hq = (hq // 10000) * f + (hq % 10000) * f // 10000
         c.hard_i_d = hi
         c.hard_q_d = hq
-
-    def _held(self, q):
-        # the lowest hard limit on the current (q 0) or the charge (q 1) a channel may report
-        # delivering (_dac_limits: held x VMON_DAC_PPM_MIN while no DAC gain is applied)
-        k = 0
-        m = 0
-        while k < self.n:
-            c = self.chans[k]
-            x = c.hard_q_d if q else c.hard_i_d
-            if k == 0 or x < m:
-                m = x
-            k += 1
-        return m
-
-    def _fit_limits(self):
-        # the soft current and charge limits never above _held(): a controller then never
-        # proposes a pulse the hard-limit check before the gate (_pulse) would latch. Lowered
-        # only (a DAC gain stored later does not raise them: SET_LIMITS may, up to _held());
-        # every controller gets the limits again and a calibration outside them must be sent
-        # again (as SET_LIMITS). Allocates nothing (SET_VMON applies under the heap lock).
-        lim = self.lim
-        hi = self._held(0)
-        hq = self._held(1)
-        if lim[1] <= hi and lim[4] <= hq:
-            return
-        if lim[1] > hi:
-            lim[1] = hi
-        if lim[0] > lim[1]:
-            lim[0] = lim[1]
-        if lim[4] > hq:
-            lim[4] = hq
-        if lim[4] < lim[0] * lim[2]:  # (q_max >= i_min t_min: the core's own rule)
-            lim[0] = lim[4] // lim[2]
-        k = 0
-        while k < self.n:
-            c = self.chans[k]
-            if c.have_cal and not (lim[0] <= c.i0 <= lim[1] and c.i0 * c.t0 <= lim[4]):
-                c.have_cal = False
-            c.ctl.set_limits(lim[0], lim[1], lim[2], lim[3], lim[4])
-            k += 1
 
     def _vmon_bad(self, r, o):
         # the OUT byte of the first refused word of one channel's correction at o (its
@@ -1162,5 +1121,4 @@ class Stimulator:
             o = hp.O_ARG + 4 + step * (k - lo)
             self._vmon_apply(self.chans[k], hp.get_i32(r, o), hp.get_i32(r, o + 4), hp.get_i32(r, o + 8))
             k += 1
-        self._fit_limits()
         return self._ack(r, hp.RES_OK, 0)

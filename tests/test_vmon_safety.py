@@ -55,8 +55,7 @@ for dac in (0, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX, 1000000):
     b = bytearray(64)
     r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac)),
          cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
-         # at the soft charge limit, which the board holds to what it may deliver (_fit_limits)
-         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.lim[4] // 8000, 8000, -1670, 0)),
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 1250, 8000, -1670, 0)),
          cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
     s.run(5)
     c = s.chans[0]
@@ -179,28 +178,22 @@ for name, flash, ideal in (("fresh", None, False), ("bad file", {d!r}, False), (
         rows.append([c.hard_i_d, c.hard_q_d, rep, bd.analog.physical_ua(c.ch, bd.code[c.ch])])
     b = bytearray(64)
     r = [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
-         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)),  # above the soft limit: refused
-         cmd(s, clock, hp.cmd_set_limits(b, 1, s.hard_i, 100, 1000, s.hard_q)),  # refused above the held limits
-         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.lim[1], 1000, -1670, 0)),  # at the held soft limit
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)),
          cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
     s.run(4)
     pulses = [[c.stop, c.di, bd.last_i_ua[c.ch]] for c in s.chans]
-    out[name] = [s.vmon_state, rows, r, pulses, s.hard_i, s.hard_q, list(s.lim)]
+    out[name] = [s.vmon_state, rows, r, pulses, s.hard_i, s.hard_q]
 result(**out)
 """)
     r = res[0]
     assert r["bad file"][0] == hp.VMON_BAD and r["fresh"][0] == hp.VMON_NONE
     for name in ("fresh", "bad file"):
-        state, rows, acks, pulses, hard_i, hard_q, lim = r[name]
-        # the soft limits are held to what the board may deliver, so a pulse above them is refused
-        # ahead (CALIBRATE, SET_LIMITS: out of range, nothing changed), never latched at the gate
-        assert acks == [hp.RES_OK, hp.RES_OUT_OF_RANGE, hp.RES_OUT_OF_RANGE, hp.RES_OK, hp.RES_OK], (name, acks)
+        state, rows, acks, pulses, hard_i, hard_q = r[name]
+        assert acks == [hp.RES_OK] * 3
         for hid, hqd, rep, phys in rows:
             assert hid == hard_i * hp.VMON_DAC_PPM_MIN // 1000000 and hqd == hard_q * hp.VMON_DAC_PPM_MIN // 1000000
             assert rep <= hid and phys <= hard_i, (name, rows)  # was 10350 uA at a gain of 1.035
-        assert lim[1] == rows[0][0] and lim[4] == min(row[1] for row in rows), (name, lim)
-        for stop, di, phys in pulses:  # at the held limit: delivered, within the hard limit
-            assert stop == hp.STOP_NONE and 0 < di <= lim[1] and phys <= hard_i, (name, pulses)
-    state, rows, acks, pulses, hard_i, hard_q, lim = r["ideal"]
-    assert acks == [hp.RES_OK] * 5 and lim[1] == hard_i, (acks, lim)
+        for stop, di, phys in pulses:  # a pulse at the hard limit's current is stopped, never delivered
+            assert stop == hp.STOP_LIMIT and phys <= hard_i, (name, pulses)
+    state, rows, acks, pulses, hard_i, hard_q = r["ideal"]
     assert [row[0] for row in rows] == [hard_i, hard_i] and all(p[0] == hp.STOP_NONE and p[1] > 0 for p in pulses)
