@@ -21,6 +21,7 @@ import struct
 from array import array
 
 import sensation_core as sc
+from fixmath import word as _word  # a word of Channel.v as an attribute (fixmath.word)
 import hid_protocol as hp
 
 try:
@@ -166,18 +167,6 @@ def _vmon_uv_min():
     while _vmon_product_max(uv) >= 1 << 30:
         uv += 1
     return uv
-
-
-def _word(k):
-    # a word of Channel.v: the array stores a machine word (MicroPython cuts an int past
-    # it where CPython raises); every command path writes values checked far inside it
-    def get(self):
-        return self.v[k]
-
-    def put(self, x):
-        self.v[k] = x
-
-    return property(get, put)
 
 
 def _flag(k):

@@ -30,7 +30,7 @@ except ImportError:  # CPython: the decorators do nothing, ptr32 indexes the arr
         return a
 
 
-from fixmath import frac12, muldiv
+from fixmath import frac12, muldiv, word
 
 # the least elasticity d(ln Rp)/d(ln Q) of the skin along the mE curve, in Q.12
 # (0.45: the current exponent beta >= 0.5 less the series resistance)
@@ -71,28 +71,18 @@ _B_RP = const(3)  # the Rp measured on it; 0: no such pulse (reset)
 _B_CLEAN = const(4)  # 1: the step computed from it was clean (no fault, no bound)
 
 
-def _word(j):
-    def get(self):
-        return self._k[j]
-
-    def put(self, x):
-        self._k[j] = x
-
-    return property(get, put)
-
-
 class Pulse:
     """A pulse the controller measured Rp on (c.before: the one before the last), as
     attributes: a view on its words in the controller's int array k (_K_B ...)."""
 
     def __init__(self, k):
-        self._k = k
+        self.v = k  # (fixmath.word reads self.v)
 
-    i_ua = _word(_K_B + _B_I)
-    t_us = _word(_K_B + _B_T)
-    q_pc = _word(_K_B + _B_Q)
-    rp_ohm = _word(_K_B + _B_RP)
-    clean = _word(_K_B + _B_CLEAN)
+    i_ua = word(_K_B + _B_I)
+    t_us = word(_K_B + _B_T)
+    q_pc = word(_K_B + _B_Q)
+    rp_ohm = word(_K_B + _B_RP)
+    clean = word(_K_B + _B_CLEAN)
 
 
 def least_elastic(x):

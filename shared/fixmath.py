@@ -240,3 +240,19 @@ def mul_q16(x: int, b: int) -> int:
     if x < 0:
         return y if b < 0 else -y
     return -y if b < 0 else y
+
+
+def word(j, bias=0):
+    """A property for word j of self.v, an int array the viper code reads by ptr32 (kept
+    + bias where the value can be negative: a 64-bit viper reads a word unsigned), so that
+    commands and tests keep attribute names (sensation_core's Pulse view, SkinModel,
+    stim.Channel). The array stores a machine word: MicroPython cuts an int past it where
+    CPython raises; every writer stores values checked far inside it."""
+
+    def get(self):
+        return self.v[j] - bias
+
+    def put(self, x):
+        self.v[j] = x + bias
+
+    return property(get, put)

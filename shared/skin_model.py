@@ -31,7 +31,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, _LOG_TAB, log2q
+from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
@@ -726,16 +726,6 @@ def _law_q(vv, lq_k: int) -> int:
     return (m + (1 << (21 - n))) >> (22 - n)
 
 
-def _word(j, bias):
-    def get(self):
-        return self.v[j] - bias
-
-    def put(self, x):
-        self.v[j] = x + bias
-
-    return property(get, put)
-
-
 class SkinModel:
     """The model's fitted parameters, the pulses it reads and its last answer. Built once
     by the Controller (`c`: its limits, mE and Eq. 3 are copied from it by limits/law).
@@ -752,11 +742,11 @@ class SkinModel:
         self.lc_set = 0  # fitted: log2 Cp (pF) as set
 
     # words of self.v as attributes (the viper code reads and writes the words)
-    on = _word(_V_ON, 0)  # 1: a model is set
-    jumped = _word(_V_JUMPED, 0)  # 1: the pulse just measured was a model jump
-    predicted_rp_ohm = _word(_V_PRED, 0)  # the Rp the model predicted for that jump
-    ls = _word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
-    lc = _word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
+    on = word(_V_ON)  # 1: a model is set
+    jumped = word(_V_JUMPED)  # 1: the pulse just measured was a model jump
+    predicted_rp_ohm = word(_V_PRED)  # the Rp the model predicted for that jump
+    ls = word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
+    lc = word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
