@@ -3,7 +3,7 @@ the skin model fitted by host/skin.py, replaying the closed loops of bench/contr
 with the most model work (bench/core_chip.py: the Rp each pulse read in CPython fed to the
 chip's Controller.update). Emulated microseconds are deterministic: every update of the
 replay takes at most 1700 us (issue 12 asks for 2000; measured 1423 worst over
-bench/core_chip.py's cases after MODE_FAST was made viper, 1060 after session 15's searches),
+bench/core_chip.py's cases after MODE_FAST was made viper, 1364 after session 15's searches),
 and the chip's pulses are CPython's."""
 
 import importlib.util
