@@ -69,6 +69,8 @@ _L_R_MAX = const(1310720)  # 20.0: R(I) above 2**20 ohm is far beyond RP_MAX_OHM
 _L_LN2 = const(-34653)  # log2(ln 2)
 NOROOT = const(-0x3FFFFFFF)  # "no sign change": what _root and _law_q return then
 _FB_KNOWN = const(0x1000000)  # in _root's kind: g(b) is v[_V_FB] - _V_BIAS (evaluated, nothing changed since)
+_FA_KNOWN = const(0x2000000)  # in _root's kind: g(a) is v[_V_FB] - _V_BIAS (as _FB_KNOWN)
+_RAW_IT = const(0x4000000)  # in _root's kind: pulse p's _P_LI, _P_LT words hold I (uA) and T (us), their log2 first
 
 # what _root's g(kind, x, lc) measures, x being the unknown (p, o: the pulses it reads)
 _K_ANCHOR = const(0)  # x = log2 S: the model (log2 Cp = lc) reads pulse p's Rp
@@ -116,7 +118,18 @@ _V_ON = const(33)  # SkinModel.on, .jumped, .predicted_rp_ohm (properties: the w
 _V_JUMPED = const(34)
 _V_PRED = const(35)
 _V_FB = const(36)  # g at the search's upper end, + _V_BIAS, when the caller knows it (_FB_KNOWN)
-_V_N = const(37)
+# the pulse in _V_NOW as given (its I, T; its Rp is _V_NOW + _P_RP) and what its anchor found
+# (log2 S + _V_BIAS, for log2 Cp + _V_BIAS, at this many work units; _V_ACH_OK 0: none yet):
+# the next jump's pulse before is this one, and its words and its anchor are taken from here
+# instead of being computed again when nothing they depend on has changed (bit-identical,
+# the units charged as if the search had run: SkinModel.jump)
+_V_NI = const(37)
+_V_NT = const(38)
+_V_ACH_OK = const(39)
+_V_ACH_LS = const(40)
+_V_ACH_LC = const(41)
+_V_ACH_W = const(42)
+_V_N = const(43)
 _V_BIAS = const(0x10000000)
 
 
@@ -138,7 +151,48 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     rs = v[_V_RS]
     pb = (kind >> 8) & 0xFF
     ob = (kind >> 16) & 0xFF
-    fbk = kind >> 24  # _FB_KNOWN
+    fbk = (kind >> 24) & 1  # _FB_KNOWN
+    fak = (kind >> 25) & 1  # _FA_KNOWN
+    if (kind >> 26) & 1:  # _RAW_IT: log2 of pulse p's I and T in place (fixmath.log2q, inline; as _pulse)
+        j = 0
+        while j < 2:
+            n = v[pb + j]  # (_P_LI, _P_LT)
+            if n < 1:
+                n = 1
+            k = 22
+            if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                if n >= 0x4000000:
+                    n >>= 4
+                    k += 4
+                if n >= 0x1000000:
+                    n >>= 2
+                    k += 2
+                if n >= 0x800000:
+                    n >>= 1
+                    k += 1
+            else:
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
+            eu = (n >> 16) - 64
+            ea = g2[eu]
+            eb = g2[eu + 1]
+            m = n & 0xFFFF
+            w = m >> 8
+            v[pb + j] = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            j += 1
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
         n = v[pb + _P_RP] - rs  # lo = log2q(n) + mul_q16(log2 I - log2 1 mA, beta), inline
@@ -183,7 +237,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         a += -my if ma < 0 else my
         b = a + 0x40000
     only = 1 if b < a else 0
-    x0 = lc0 if kind == _K_LAW else 0  # _K_LAW: lc0 is a guess of the root (else 0)
+    x0 = lc0 if kind == _K_LAW else NOROOT  # _K_LAW: lc0 is a guess of the root (else none)
     if not only:
         v[_V_WORK] += _ROOT_WORK
     phase = 0  # 0: evaluating at a, 1: at b, 2: inside
@@ -192,6 +246,14 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     side = 0
     it = 0  # interpolation steps
     x = a
+    if fak and not only:  # g(a) known: its unit of work and its budget check, as if evaluated
+        if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+            v[_V_CUT] = 1
+            return NOROOT
+        v[_V_WORK] += 1
+        fa = v[_V_FB] - _V_BIAS
+        x = b
+        phase = 1
     while True:
         if not only:  # the jump's budget
             if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
@@ -693,7 +755,20 @@ def _law_q(vv, lq_k: int) -> int:
                 hi = x
             if hi <= lo:
                 return NOROOT
-            x = int(_root(vv, _K_CEIL, lo, hi, 0))
+            # g of the line at t_max is fb where the mE curve meets t_max (the same pulse, to the
+            # rounding of lq_t), at I = xa; it falls with slope <= -1 in log2 I (the line's
+            # charge L(Rp) does not rise with I: Rp(I, t_max) falls with I), so the root lies
+            # in [xa, xa + fb]: searched there first, the whole range if it is not there
+            xa = lq_t - ltmax
+            x = NOROOT
+            if fb > 16 and xa + fb < hi and lo < xa + fb:  # (fb > 16: well above the rounding of g)
+                if xa >= lo:
+                    v[_V_FB] = fb + _V_BIAS
+                    x = int(_root(vv, _K_CEIL + _FA_KNOWN, xa, xa + fb, 0))
+                else:  # (the curve meets t_max below i_min: from i_min)
+                    x = int(_root(vv, _K_CEIL, lo, xa + fb, 0))
+            if x == NOROOT and v[_V_CUT] == 0:
+                x = int(_root(vv, _K_CEIL, lo, hi, 0))
             if x == NOROOT:
                 return NOROOT
             n = x + ltmax + 0x40000  # log2 of I t_max in 1/16 pC
@@ -760,6 +835,8 @@ class SkinModel:
         self.beta_q16 = beta_q16
         self.v[_V_RS] = rs_ohm
         self.v[_V_BETA] = beta_q16
+        self.v[_V_NI] = 0  # (nothing kept from a jump on other parameters)
+        self.v[_V_ACH_OK] = 0
         self.jumped = 0
 
     def limits(self, i_min_ua, i_max_ua, t_max_us, q_max_pc):
@@ -842,20 +919,97 @@ class SkinModel:
         vv = self.v
         v = ptr32(vv)
         pk = ptr32(prev)
-        _pulse(vv, _V_NOW, i_k, t_k, rp_ohm)
         p0rp = pk[_KB_RP]
+        bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
         if p0rp > 0:
-            _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
+            if v[_V_NI] == pk[_KB_I] and v[_V_NT] == pk[_KB_T] and v[_V_NOW + _P_RP] == p0rp and p0rp > 0:
+                v[_V_BEFORE + _P_LI] = v[_V_NOW + _P_LI]  # the words _pulse would compute
+                v[_V_BEFORE + _P_LT] = v[_V_NOW + _P_LT]
+                v[_V_BEFORE + _P_RP] = p0rp
+                v[_V_BEFORE + _P_RLP] = v[_V_NOW + _P_RLP]
+                bhit = v[_V_ACH_OK]
+            else:
+                _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
+        bls = v[_V_ACH_LS]
+        blc = v[_V_ACH_LC]
+        bw = v[_V_ACH_W]
+        # the pulse just measured: as _pulse(vv, _V_NOW, i_k, t_k, rp_ohm), inline (a call is ~16 us on the chip)
+        v[_V_NOW + _P_RP] = rp_ohm
+        v[_V_WORK] = 0
+        v[_V_CUT] = 0
+        g2 = ptr32(_LOG_TAB)
+        j = 0
+        while j < 4:
+            if j == 0:
+                n = i_k
+            elif j == 1:
+                n = t_k
+            elif j == 2:
+                n = rp_ohm
+            else:
+                n = i_k * t_k
+            if n < 1:
+                n = 1
+            k = 22
+            if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                if n >= 0x4000000:
+                    n >>= 4
+                    k += 4
+                if n >= 0x1000000:
+                    n >>= 2
+                    k += 2
+                if n >= 0x800000:
+                    n >>= 1
+                    k += 1
+            else:
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
+            eu = (n >> 16) - 64
+            ea = g2[eu]
+            eb = g2[eu + 1]
+            m = n & 0xFFFF
+            w = m >> 8
+            n = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            if j == 0:
+                v[_V_NOW + _P_LI] = n
+            elif j == 1:
+                v[_V_NOW + _P_LT] = n
+            elif j == 2:
+                v[_V_NOW + _P_RLP] = n
+            else:
+                v[_V_LQK] = n
+            j += 1
+        v[_V_NI] = i_k
+        v[_V_NT] = t_k
+        v[_V_ACH_OK] = 0
         if jumped and p0rp > 0:
             miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             if (miss if miss >= 0 else 0 - miss) > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 self.refit_cp()
         lc = v[_V_LC] - _V_BIAS  # (self.lc)
+        w0 = v[_V_WORK]
         ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
         v[_V_LS] = ls + _V_BIAS  # (self.ls)
+        v[_V_ACH_LS] = ls + _V_BIAS  # (kept for the next jump's pulse before)
+        v[_V_ACH_LC] = lc + _V_BIAS
+        v[_V_ACH_W] = v[_V_WORK] - w0
+        v[_V_ACH_OK] = 1
         lq_k = v[_V_LQK]
         q16 = int(_law_q(vv, lq_k))
         lc_set = int(self.lc_set) if q16 == NOROOT else lc
@@ -864,17 +1018,29 @@ class SkinModel:
             # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
             lc = lc_set
             v[_V_LC] = lc + _V_BIAS  # (self.lc)
+            v[_V_ACH_OK] = 0
+            w0 = v[_V_WORK]
             ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
             if ls == NOROOT:
                 return -2 if v[_V_CUT] else -1
             v[_V_LS] = ls + _V_BIAS  # (self.ls)
+            v[_V_ACH_LS] = ls + _V_BIAS
+            v[_V_ACH_LC] = lc + _V_BIAS
+            v[_V_ACH_W] = v[_V_WORK] - w0
+            v[_V_ACH_OK] = 1
             q16 = int(_law_q(vv, lq_k))
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
         if q16 > (q_k << 4) and jumped == 0 and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
-            ls0 = int(_root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
+            if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
+                # the last jump's anchor on that pulse at that Cp, its work charged as if it ran
+                # (its search would not have run out: the same answers as searching again)
+                ls0 = bls - _V_BIAS
+                v[_V_WORK] += bw
+            else:
+                ls0 = int(_root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
             if ls0 != NOROOT:
                 v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
                 la = int(_root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
@@ -915,8 +1081,9 @@ class SkinModel:
         c = self.c
         s_k = int(c.status)
         st = int(from_q(c, q16))
-        _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)  # the pulse sent: the model's prediction of its Rp
-        rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
+        v[_V_PROBE + _P_LI] = int(c.i_ua)  # the pulse sent: the model's prediction of its Rp
+        v[_V_PROBE + _P_LT] = int(c.t_us)
+        rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         if (q16 > base and jumped == 0 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
@@ -927,8 +1094,9 @@ class SkinModel:
             c.i_ua = i_k
             c.t_us = t_k
             st = int(from_q(c, q16))
-            _pulse(vv, _V_PROBE, int(c.i_ua), int(c.t_us), 0)
-            rp = int(_root(vv, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc))
+            v[_V_PROBE + _P_LI] = int(c.i_ua)
+            v[_V_PROBE + _P_LT] = int(c.t_us)
+            rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
         v[_V_JUMPED] = 1
         n = int(c.model_jumps)

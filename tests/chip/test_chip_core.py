@@ -3,18 +3,21 @@ the skin model fitted by host/skin.py, replaying the closed loops of bench/contr
 with the most model work (bench/core_chip.py: the Rp each pulse read in CPython fed to the
 chip's Controller.update). Emulated microseconds are deterministic: every update of the
 replay takes at most 1700 us (issue 12 asks for 2000; measured 1423 worst over
-bench/core_chip.py's cases after MODE_FAST was made viper), and the chip's pulses are CPython's."""
+bench/core_chip.py's cases after MODE_FAST was made viper, 1364 after session 15's searches),
+and the chip's pulses are CPython's."""
 
 import importlib.util
+import struct
 import sys
 
 from .harness import ROOT
 
-# the heaviest jumps of bench/core_chip.py's table, their first UPDATES updates: a fresh
-# rise that spends FAST_MODEL_WORK_MAX (gel soaking in: anchor, law, contact anchor, search
-# and law, cut), and a jump on most pulses under 0.3 % Rp noise
-CASES = (("gel", 0.0), ("step +20 700", 0.003))
-UPDATES = 160
+# the heaviest jumps of bench/core_chip.py's cases, their first UPDATES updates: a jump on most
+# pulses under 0.3 % Rp noise, peel (a jump spending 76 of FAST_MODEL_WORK_MAX's 80 units at
+# updates 132, 179, 180) and a step (74); since the search of the duration ceiling starts where
+# the mE curve meets t_max (session 15) no closed loop of the benchmark runs out of the budget
+CASES = (("peel", 0.003), ("step +20 700", 0.003))
+UPDATES = 200
 WORST_US = 1700
 
 
@@ -38,14 +41,28 @@ def test_worst_update_with_the_skin_model_within_1_7_ms(chip, tmp_path):
     rows = [ln.split() for ln in out.splitlines() if ln.startswith("CASE")]
     assert len(rows) == len(CASES), out
     worst = {}
-    cut = 0
     for row, (label, h) in zip(rows, want):
-        _, _k, n, _med, _p99, w, hc, jumps, cuts = row
+        _, _k, n, _med, _p99, w, hc, jumps, _cuts = row
         assert int(n) == UPDATES
         assert int(hc) == h, (label, "the chip's pulses differ from CPython's")
         assert int(jumps) >= 1, (label, "the replay made no model jumps: it tests nothing")
         worst[label] = int(w)
-        cut += int(cuts)
     assert max(worst.values()) <= WORST_US, worst
-    assert min(worst.values()) >= 1000, worst  # each replay does reach the model's heavy jumps
-    assert cut >= 1  # and a jump that spent the whole FAST_MODEL_WORK_MAX
+    assert min(worst.values()) >= 900, worst  # each replay does reach the model's heavy jumps
+    # and a jump within a search's set-up of the whole FAST_MODEL_WORK_MAX (counted in CPython,
+    # whose pulses the chip's are: the hash above)
+    import sensation_core as sc
+    import skin_model as sm
+
+    most = 0
+    for k in range(len(CASES)):
+        b = (tmp_path / f"cl_{k}.bin").read_bytes()
+        v = struct.unpack("<14i", b[:56])
+        c = sc.Controller(*v[:5])
+        c.calibrate(*v[5:10])
+        c.set_mode(sc.MODE_FAST)
+        c.set_skin(*v[10:13])
+        for rp in struct.unpack(f"<{v[13]}i", b[56:56 + 4 * v[13]]):
+            c.update(rp)
+            most = max(most, c.skin.v[sm._V_WORK])
+    assert most >= sm.FAST_MODEL_WORK_MAX - sm._ROOT_WORK, most
