@@ -170,11 +170,12 @@ def parse(argv):
 
 
 def auto_start(s, o, now):
-    """Calibrate, set the mode and arm every channel, through the command handler."""
+    """Calibrate, set the mode and arm every channel, through the command handler; then GET_INFO
+    (its report tells a recording the limits in force: held on a board with no DAC gain)."""
     b = bytearray(hp.REPORT_LEN)
     i0, t0, x, y = o["auto"]
     for rep in (hp.cmd_set_mode(b, o["mode"]), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, i0, t0, x, y),
-                hp.cmd_arm(bytearray(64), hp.CH_ALL)):
+                hp.cmd_arm(bytearray(64), hp.CH_ALL), hp.cmd_get_info(bytearray(64))):
         res = s.handle(rep, now)
         s.board.send(s.tx)
         if res != hp.RES_OK:
