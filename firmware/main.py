@@ -179,8 +179,12 @@ def auto_start(s, o, now):
         res = s.handle(rep, now)
         s.board.send(s.tx)
         if res != hp.RES_OK:
-            raise UsageError("--auto: the device refused command 0x%02x with result %d (detail byte %d)"
-                             % (rep[0], res, s.tx[hp.O_DETAIL]))
+            lim = s.lim
+            raise UsageError("--auto: the device refused command 0x%02x with result %d (detail byte %d); its soft "
+                             "limits: I %d..%d uA, T %d..%d us, Q <= %d pC%s"
+                             % (rep[0], res, s.tx[hp.O_DETAIL], lim[0], lim[1], lim[2], lim[3], lim[4],
+                                " (held: no DAC gain measured; `steadytouch selftest --load-ohm OHMS --scope` lifts it)"
+                                if s._no_dac_gain() else ""))
     s.sync_outputs()
 
 

@@ -199,7 +199,7 @@ def test_a_closed_loop_on_the_realistic_sim_that_wants_more_is_clamped_not_latch
     assert a.returncode == 0 and "bit-exact" in a.stdout, a.stdout + a.stderr
 
 
-def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason():
+def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason(tmp_path):
     url = "sim://steady?channels=2"
     p = run_cli("info", "--device", url)
     assert p.returncode == 0, p.stderr
@@ -219,6 +219,12 @@ def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason():
         assert p.returncode == 2 and len(err) == 1 and words in err[0], (args, p.stderr)
         assert "no DAC gain was measured" in err[0] and "steadytouch selftest" in err[0] and "--scope" in err[0]
         assert "Traceback" not in p.stderr
+    # the simulator's --auto start on the realistic board: refused by the device, with its limits and why
+    p = run_cli("sim", "steady", "--i0-ua", "9800", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0",
+                "--no-plot", "--out", str(tmp_path))
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1 and f"soft limits: I 500..{HELD_I} uA" in err[0], p.stderr
+    assert "held: no DAC gain measured" in err[0] and "--scope" in err[0] and not list(tmp_path.iterdir())
     # nothing was sent: the soft limits are as they booted
     p = run_cli("info", "--device", url)
     assert f"soft limits: I 500-{HELD_I} uA" in p.stdout
