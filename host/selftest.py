@@ -286,6 +286,30 @@ def put_back(d, old: dict, n_channels: int) -> None:
     apply_in_ram(d, {ch: (c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for ch, c in old.items()}, n_channels)
 
 
+def restore_limits(d, before, say) -> None:
+    """The soft limits the device had before the self-test (`before`: its GET_INFO then) set again
+    with SET_LIMITS: the self-test switches the correction off in RAM while it runs, which holds
+    them (the firmware lowers them to the held hard limits, and never raises them again). Capped
+    at the hard limits in force now (GET_INFO read again); a soft limit that stood at the hard
+    limit held then follows the hard limit (a stored DAC gain lifts the hold: the full limit).
+    One line when they could not be restored in full."""
+    now = d.info()
+    hi, hq = now.hard_i_max_ua, now.hard_q_max_pc
+    i_max = hi if before.held and before.i_max_ua >= before.hard_i_max_ua else min(before.i_max_ua, hi)
+    q_max = hq if before.held and before.q_max_pc >= before.hard_q_max_pc else min(before.q_max_pc, hq)
+    t_min, t_max = before.t_min_us, before.t_max_us
+    i_min = min(before.i_min_ua, i_max, q_max // t_min)
+    want = (i_min, i_max, t_min, t_max, q_max)
+    if (now.i_min_ua, now.i_max_ua, now.t_min_us, now.t_max_us, now.q_max_pc) != want:
+        d.limits(*want)
+    if i_max < before.i_max_ua or q_max < before.q_max_pc or i_min < before.i_min_ua:
+        from .protocol import held_reason
+
+        why = held_reason() if now.held else "the hard limits the device reports are lower"
+        say(f"soft limits now I {i_min}..{i_max} uA, T {t_min}..{t_max} us, Q <= {q_max} pC (were I "
+            f"{before.i_min_ua}..{before.i_max_ua} uA, Q <= {before.q_max_pc} pC): {why}")
+
+
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
 
 
@@ -388,6 +412,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
         d.disarm()
         old = {ch: d.calibration(ch) for ch in chans}
         done = False
+        failed = True  # an error on the way: the limits are restored best effort, the error is the message
         try:
             apply_in_ram(d, {ch: (0, 0, 0) for ch in chans}, info.n_channels)  # the raw path: off in RAM only
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
@@ -403,6 +428,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 check_range(fits)
             worst = max(f.worst_rp_err_before for f in fits)
             if not store:
+                failed = False
                 return 0
             try:
                 back = store_on_device(d, fits, info.n_channels)
@@ -423,11 +449,17 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 rows = _measure(d, check, chans, "selftest check", "the correction is stored on the device")
                 say(f"with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
                     f"(was {worst:.2%})")
+            failed = False
         finally:
             if not done:  # put back what the device applied before (its flash was not touched)
                 with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
                     d.disarm()
                     put_back(d, old, info.n_channels)
+            if not failed:
+                restore_limits(d, info, say)
+            elif not done:  # (a store whose outcome is unknown: the message says to reset the board)
+                with contextlib.suppress(Exception):
+                    restore_limits(d, info, say)
     if save_dir is not None:
         say(f"a copy on this computer: {save(fits, Path(save_dir))}")
     if sim:  # a reset: the simulated board boots again and reads its flash
