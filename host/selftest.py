@@ -27,6 +27,9 @@ independent reference: with --scope the builder reads the plateau of a
 reference pulse across the load on a scope, V = g_dac x I_nominal x R, which
 gives g_dac; the monitor is then corrected by G / g_dac and the board scales its
 DAC's full scale by g_dac, so the current it reports is the one delivered.
+Without --scope a DAC gain the device already has (REP_CAL's, a scope measured it
+once) is kept and stored again with the new monitor gain G / g_dac: a self-test never
+erases it (which would hold the board's limits again, docs/safety.md).
 Units: uA, us, mV, ohm; gains in ppm in the stored file.
 """
 
@@ -84,6 +87,7 @@ class ChannelFit:
     worst_point_err_after: float  # largest |mean Rp of a test point - R| / R, corrected (noise averaged)
     rows: list = field(default_factory=list, repr=False)
     dac_gain: float = 0.0  # delivered / nominal current, from a scope reading (0: not measured)
+    dac_kept: bool = False  # dac_gain is the one the device had (a self-test without --scope keeps it)
 
     @property
     def gain_ppm(self) -> int:
@@ -196,7 +200,10 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
     out.append("G = DAC gain x monitor gain (one resistor sees only their product; correcting the monitor by G "
                "makes Rp = Vp/I exact)")
     for f in fits:
-        if f.dac_gain:
+        if f.dac_gain and f.dac_kept:
+            out.append(f"ch{f.channel}: keeps the DAC gain {f.dac_gain:.4f} the device had (--scope measures it "
+                       f"again); the monitor's own gain is {f.gain_ppm / 1e6:.4f}")
+        elif f.dac_gain:
             out.append(f"ch{f.channel}: against the scope the DAC delivers {f.dac_gain:.4f} x nominal; the monitor's "
                        f"own gain is {f.gain_ppm / 1e6:.4f}")
     return out
@@ -417,6 +424,10 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             apply_in_ram(d, {ch: (0, 0, 0) for ch in chans}, info.n_channels)  # the raw path: off in RAM only
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            if not scope:  # a DAC gain the device has (a scope measured it once) is kept, not erased
+                for f in fits:
+                    if old[f.channel].dac_gain_ppm:
+                        f.dac_gain, f.dac_kept = old[f.channel].dac_gain_ppm / 1e6, True
             for line in report_lines(fits, load_ohm):
                 say(line)
             check_range(fits)  # the path itself outside its window: out of specification, before any scope
@@ -440,7 +451,8 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             done = True
             say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
                 f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
-                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
+                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back)
+                   if scope or any(c.dac_gain_ppm for c in back) else ""))
             if scope and not info.dac_gain_applied:
                 say("the DAC gain is stored, not applied: this board has no gain-corrected DAC (its current is the "
                     "commanded one)")

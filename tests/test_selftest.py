@@ -485,7 +485,7 @@ def _soft(i):
     return (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc)
 
 
-@pytest.mark.parametrize("store", [False])
+@pytest.mark.parametrize("store", [False, True])
 def test_selftest_gives_back_the_soft_limits_it_found(tmp_path, monkeypatch, store):
     """The self-test switches the correction off in RAM while it measures, which holds the limits (the firmware
     lowers the soft ones to 9650 uA / 9.65 uC); afterwards the soft limits the board had are set again (were:
@@ -509,6 +509,9 @@ def test_selftest_gives_back_the_soft_limits_it_found(tmp_path, monkeypatch, sto
         d.mode(sc.MODE_OPEN_LOOP)
         assert d.calibrate(9800, 300, -1670, 0).ok
     assert not any(s.startswith("soft limits now") for s in said), said
+    if store:  # without --scope the DAC gain stored is kept (was: stored 0, the board held at 9650 uA)
+        assert [ln.split()[3] for ln in (tmp_path / "vmon_cal.txt").read_text().splitlines()[2:]] == ["1000000"] * 2
+        assert sum("keeps the DAC gain 1.0000 the device had" in s for s in said) == 2, said
 
 
 def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_held_soft_limits(tmp_path, monkeypatch):
