@@ -739,10 +739,10 @@ class Stimulator:
         b[hp.O_FW + 2] = FW_VERSION[2]
         b[hp.O_FW + 3] = self.n
         # the hard current and charge limits in force: held below the board's nominal ones while
-        # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (_held)
-        hp.put_u16(b, hp.O_HARD_I, self._held(0))
+        # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (held_limit)
+        hp.put_u16(b, hp.O_HARD_I, self.held_limit(0))
         hp.put_u16(b, hp.O_HARD_T, self.hard_t)
-        hp.put_i32(b, hp.O_HARD_Q, self._held(1))
+        hp.put_i32(b, hp.O_HARD_Q, self.held_limit(1))
         hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
         lim = self.lim
         hp.put_u16(b, hp.O_LIM, lim[0])
@@ -762,7 +762,7 @@ class Stimulator:
         f = 0
         if self._dac_applied:  # a stored DAC gain scales this board's DAC (else: stored, not applied)
             f = hp.INFO_FLAG_DAC_GAIN
-        if self._no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
+        if self.no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
             f |= hp.INFO_FLAG_HELD
         b[hp.O_INFO_FLAGS] = f
         self.acks = (self.acks + 1) & 0x3FFFFFFF
@@ -960,7 +960,7 @@ class Stimulator:
             if self.chans[k].armed:
                 return self._ack(r, hp.RES_BAD_STATE, 0)
             k += 1
-        if not 1 <= i_max <= self._held(0):  # the hard limit every channel may deliver (_dac_limits)
+        if not 1 <= i_max <= self.held_limit(0):  # the hard limit every channel may deliver (_dac_limits)
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
@@ -968,7 +968,7 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
-        if not i_min * t_min <= q_max <= self._held(1):
+        if not i_min * t_min <= q_max <= self.held_limit(1):
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
         k = 0
         while k < self.n:  # a calibration outside the new limits must be sent again
@@ -1028,7 +1028,7 @@ class Stimulator:
         c.hard_i_d = hi
         c.hard_q_d = hq
 
-    def _held(self, q):
+    def held_limit(self, q):
         """The held hard limit on the current (q 0, uA) or the charge (q 1, pC): the lowest
         a channel may report delivering (_dac_limits: the hard limits x VMON_DAC_PPM_MIN while
         a channel has no DAC gain applied, x a gain below 1 while one is). The limit in force
@@ -1044,7 +1044,7 @@ class Stimulator:
             k += 1
         return m
 
-    def _no_dac_gain(self):
+    def no_dac_gain(self):
         """True while some channel's limits are held for want of a DAC gain (_dac_limits: none
         applied, on a board whose current is not exactly the commanded one): GET_INFO's
         INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it."""
@@ -1060,16 +1060,16 @@ class Stimulator:
         return False
 
     def _fit_limits(self):
-        """The soft current and charge limits never above _held(): a controller then never
+        """The soft current and charge limits never above held_limit(): a controller then never
         proposes a pulse the hard-limit check before the gate (_pulse) would latch (it stays
         the last line). At boot and after every SET_VMON. Lowered only (a DAC gain stored later
-        does not raise them: SET_LIMITS may, up to _held()); when lowered, every controller gets
+        does not raise them: SET_LIMITS may, up to held_limit()); when lowered, every controller gets
         the limits again and a calibration outside them must be sent again (as after SET_LIMITS).
         Allocates nothing (SET_VMON applies under the heap lock); products < 2**30 (soft limits
         within the core's envelope)."""
         lim = self.lim
-        hi = self._held(0)
-        hq = self._held(1)
+        hi = self.held_limit(0)
+        hq = self.held_limit(1)
         if lim[1] <= hi and lim[4] <= hq:
             return
         if lim[1] > hi:

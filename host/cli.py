@@ -100,6 +100,9 @@ def cmd_sim(a) -> int:
     _lab_check(a)
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     cal = Calib(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)
+    with open_transport(f"sim://steady?channels={a.channels}" + ("&board=ideal" if a.ideal_board else "")) as t:
+        # the simulated board's own soft limits (held without a DAC gain in its flash), as `calibrate` checks them
+        _within_soft_limits(Device(t).info(), cal.i0_ua, cal.t0_us, "--i0-ua", sim=True)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -418,27 +421,30 @@ def cmd_calibrate(a) -> int:
     return 0
 
 
-def _why_not_higher(i: Info, beyond_hard: bool) -> str:
+def _why_not_higher(i: Info, beyond_hard: bool, sim: bool = False) -> str:
     """Why a value above the device's soft limits is refused: the hard limits it reports (held for want of a DAC
-    gain: say so and how to lift it), or soft limits `steadytouch limits` may raise."""
+    gain: say so and how to lift it), or soft limits `steadytouch limits` may raise (sim: board_config's)."""
     if beyond_hard and i.held:
         return f"; {held_reason()}"
     if beyond_hard:
         return " (the board's hard limits)"
+    if sim:
+        return " (the simulated board's, firmware/board_config.py)"
     return " (`steadytouch limits` changes them, within the board's hard limits)"
 
 
-def _within_soft_limits(i: Info, i0_ua: int, t0_us: int, name: str = "i0_ua") -> None:
+def _within_soft_limits(i: Info, i0_ua: int, t0_us: int, name: str = "i0_ua", sim: bool = False) -> None:
     """The device's own soft limits (read back from it), checked before the calibration is sent."""
+    t_name = "--t0-us" if sim else "t0_us"
     if not i.i_min_ua <= i0_ua <= i.i_max_ua:
         raise ValueError(f"{name}={i0_ua} out of range: the device's soft limits are {i.i_min_ua}..{i.i_max_ua} uA"
-                         + _why_not_higher(i, i0_ua > i.hard_i_max_ua))
+                         + _why_not_higher(i, i0_ua > i.hard_i_max_ua, sim))
     if not i.t_min_us <= t0_us <= i.t_max_us:
-        raise ValueError(f"t0_us={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us "
-                         "(`steadytouch limits` changes them)")
+        raise ValueError(f"{t_name}={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us"
+                         + _why_not_higher(i, False, sim))
     if i0_ua * t0_us > i.q_max_pc:
-        raise ValueError(f"{name}*t0_us={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} pC"
-                         + (_why_not_higher(i, True) if i0_ua * t0_us > i.hard_q_max_pc else ""))
+        raise ValueError(f"{name}*{t_name}={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} "
+                         "pC" + (_why_not_higher(i, True) if i0_ua * t0_us > i.hard_q_max_pc else ""))
 
 
 def _calibration_json(path) -> dict:

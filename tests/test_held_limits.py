@@ -219,12 +219,13 @@ def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason(tmp_path):
         assert p.returncode == 2 and len(err) == 1 and words in err[0], (args, p.stderr)
         assert "no DAC gain was measured" in err[0] and "steadytouch selftest" in err[0] and "--scope" in err[0]
         assert "Traceback" not in p.stderr
-    # the simulator's --auto start on the realistic board: refused by the device, with its limits and why
+    # `steadytouch sim` on the realistic board: checked against the simulated board's soft limits first
     p = run_cli("sim", "steady", "--i0-ua", "9800", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0",
                 "--no-plot", "--out", str(tmp_path))
     err = p.stderr.strip().splitlines()
-    assert p.returncode == 2 and len(err) == 1 and f"soft limits: I 500..{HELD_I} uA" in err[0], p.stderr
-    assert "held: no DAC gain measured" in err[0] and "--scope" in err[0] and not list(tmp_path.iterdir())
+    assert p.returncode == 2 and len(err) == 1, p.stderr
+    assert err[0].startswith(f"steadytouch: --i0-ua=9800 out of range: the device's soft limits are 500..{HELD_I} uA")
+    assert "no DAC gain was measured" in err[0] and "--scope" in err[0] and not list(tmp_path.iterdir())
     # nothing was sent: the soft limits are as they booted
     p = run_cli("info", "--device", url)
     assert f"soft limits: I 500-{HELD_I} uA" in p.stdout
@@ -253,3 +254,33 @@ def test_the_host_forgets_the_hard_limits_after_a_set_vmon():
         assert d.limits(500, HARD_I, 100, 4000, HARD_Q).ok
         i = d.info()
         assert (i.hard_i_max_ua, i.held, i.i_max_ua, i.q_max_pc) == (HARD_I, False, HARD_I, HARD_Q)
+
+
+def test_a_refusal_names_the_value_and_the_range_and_the_hold_only_when_it_is_the_cause(tmp_path):
+    """`steadytouch sim` and the firmware's own --auto: 300 uA is below i_min (500): the hold is not the cause and
+    is not named (was: "(held: ...)" on every refusal, with "command 0x12 with result 4 (detail byte 4)" and a
+    doubled "steadytouch: steadytouch firmware:" prefix); 9800 uA is above the held 9650 and within the board's
+    10000: the hold is named; 20000 is above the board's own: not the hold."""
+    for i0, t0, words, held in ((300, 1000, "--i0-ua=300 out of range: the device's soft limits are 500..9650 uA", False),
+                                (5000, 2000, "--i0-ua*--t0-us=10000000 pC out of range: the device's charge limit is "
+                                             "9650000 pC", True)):
+        p = run_cli("sim", "steady", "--i0-ua", str(i0), "--t0-us", str(t0), "--no-plot", "--out", str(tmp_path))
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(err) == 1 and err[0].startswith(f"steadytouch: {words}"), p.stderr
+        assert ("no DAC gain was measured" in err[0]) == held and "steadytouch firmware" not in err[0], err
+        assert not list(tmp_path.iterdir())
+    import os
+
+    from steadytouch.simrun import FIRMWARE, SHARED, micropython_exe
+
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
+    for i0, words, held in ((300, "I0 300 uA out of range: the device accepts 500..9650 uA", False),
+                            (9800, "I0 9800 uA out of range: the device accepts 500..9650 uA", True),
+                            (20000, "I0 20000 uA out of range: the device accepts 500..9650 uA", False)):
+        p = subprocess.run([micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", "steady", "--frames", "5",
+                            "--auto", f"{i0},300,-1670,0", "--flash-dir", str(tmp_path)], capture_output=True,
+                           text=True, errors="replace", timeout=60, env=env)
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and err == [err[0]] and err[0].startswith(f"steadytouch firmware: --auto: {words}"), err
+        assert ("held at 9650 uA, 9650000 pC: no DAC gain was measured" in err[0]) == held, err
+        assert "0x12" not in err[0]
