@@ -764,6 +764,8 @@ class Stimulator:
             f = hp.INFO_FLAG_DAC_GAIN
         if self.no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
             f |= hp.INFO_FLAG_HELD
+        elif self.held_limit(0) < self.hard_i or self.held_limit(1) < self.hard_q:
+            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below 1 applied on a channel
         b[hp.O_INFO_FLAGS] = f
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
@@ -1020,8 +1022,8 @@ class Stimulator:
         hi = self.hard_i
         hq = self.hard_q
         f = dac_ppm // 100
-        if not self._dac_exact and (not dac_ppm or not self._dac_applied):  # no gain applied
-            f = hp.VMON_DAC_PPM_MIN // 100
+        if not dac_ppm or not self._dac_applied:  # no gain applied: the board's error is not known ...
+            f = 0 if self._dac_exact else hp.VMON_DAC_PPM_MIN // 100  # ... unless it has none (the full limits)
         if 0 < f < 10000:
             hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 11000
             hq = (hq // 10000) * f + (hq % 10000) * f // 10000

@@ -183,9 +183,14 @@ def cmd_info(a) -> int:
         i = d.info()
         say(f"{a.device}: steadytouch firmware {i.firmware} on {i.board}, {i.n_channels} channel(s)")
         say(f"  hard limits: I <= {i.hard_i_max_ua} uA, T <= {i.hard_t_max_us} us, Q <= {i.hard_q_max_pc} pC, "
-            f"compliance {i.compliance_mv / 1000:g} V" + (" (held)" if i.held else ""))
+            f"compliance {i.compliance_mv / 1000:g} V" + (" (held)" if i.held else " (lowered)" if i.dac_low else ""))
         if i.held:
             say(f"  held: {held_reason()}")
+        elif i.dac_low:
+            low = [f"ch{ch} {c.dac_gain_ppm / 1e6:.4f}" for ch in range(i.n_channels)
+                   for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < 1000000]
+            say(f"  lowered: the board's own limits x the DAC gain below 1 measured ({', '.join(low)}): the current "
+                "it reports is the delivered one")
         say(f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC")
         say(f"  mode {MODE_WORDS.get(i.mode, i.mode)}, {i.rate_hz} Hz, "
             f"keep-alive {'off' if not i.keepalive_ms else str(i.keepalive_ms) + ' ms'}")

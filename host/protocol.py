@@ -148,8 +148,26 @@ class Info:
         a channel has no DAC gain applied (INFO_FLAG_HELD; firmware before it: never set)."""
         return bool(self.flags & hp.INFO_FLAG_HELD)
 
+    @property
+    def dac_low(self) -> bool:
+        """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits by a DAC gain below 1
+        applied on a channel (INFO_FLAG_DAC_LOW; firmware before it: never set)."""
+        return bool(self.flags & hp.INFO_FLAG_DAC_LOW)
+
+    def lowered_reason(self) -> str:
+        """Why the hard current and charge limits are below the board's own, or '' (neither flag)."""
+        if self.held:
+            return held_reason()
+        if self.dac_low:
+            return DAC_LOW_REASON
+        return ""
+
 
 HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held below nominal (3.5 %)
+
+
+DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 measured on a channel (the current it "
+                  "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
 
 
 def held_reason() -> str:
@@ -448,13 +466,13 @@ class Commands:
         self.model = 0
         # the device's hard current and charge limits in force (GET_INFO: held while it has no DAC
         # gain) and whether they are held, once known (know()); unknown again after a SET_VMON
-        self.hard: tuple[int, int, bool] | None = None
+        self.hard: tuple[int, int, str] | None = None  # (I, Q, why they are below the board's own or '')
 
     def know(self, info: "Info") -> None:
         """What a GET_INFO answer says of the frame (channels, rate and soft t_max) and of the
         hard limits in force (SET_LIMITS above them is then refused here, as the device does)."""
         self.frame = (info.n_channels, info.rate_hz, info.t_max_us)
-        self.hard = (info.hard_i_max_ua, info.hard_q_max_pc, info.held)
+        self.hard = (info.hard_i_max_ua, info.hard_q_max_pc, info.lowered_reason())
 
     def applied(self, report: bytes) -> None:
         """The device acknowledged `report` (RES_OK): follow a new rate or t_max."""
@@ -481,8 +499,8 @@ class Commands:
     def _within_hard(self, i_max: int, q_max: int) -> None:
         if self.hard is None:
             return
-        hard_i, hard_q, held = self.hard
-        why = f": {held_reason()}" if held else ""
+        hard_i, hard_q, reason = self.hard
+        why = f": {reason}" if reason else ""
         if i_max > hard_i:
             raise CommandError(f"i_max_ua={i_max} out of range: the device accepts 1..{hard_i} uA{why}")
         if q_max > hard_q:

@@ -284,3 +284,32 @@ def test_a_refusal_names_the_value_and_the_range_and_the_hold_only_when_it_is_th
         assert p.returncode == 2 and err == [err[0]] and err[0].startswith(f"steadytouch firmware: --auto: {words}"), err
         assert ("held at 9650 uA, 9650000 pC: no DAC gain was measured" in err[0]) == held, err
         assert "0x12" not in err[0]
+
+
+def test_a_dac_gain_below_1_lowers_the_limits_only_where_it_is_applied_and_the_host_says_why(tmp_path):
+    """A stored DAC gain of 0.98 on ch0: the ideal board (its current exactly the commanded one; the gain is
+    stored, not applied) keeps the full limits (was: 9800 uA / 9.8 uC, against the docs and `info`'s "stored,
+    not applied"); the realistic board applies it, its hard limits are x 0.98, and `info` and the `limits`
+    refusal say that reason (GET_INFO's INFO_FLAG_DAC_LOW), not the hold."""
+    import os
+
+    (tmp_path / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 980000\n1 0 0 1000000\n")
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    url = "sim://steady?channels=2"
+    p = run_cli("info", "--device", url + "&board=ideal", env=env)
+    assert p.returncode == 0 and f"hard limits: I <= {HARD_I} uA, T <= 8000 us, Q <= {HARD_Q} pC" in p.stdout, p.stdout
+    assert f"soft limits: I 500-{HARD_I} uA" in p.stdout and "(held)" not in p.stdout and "lowered" not in p.stdout
+    assert "DAC gain 0.9800 stored, not applied" in p.stdout
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", str(HARD_I), "--t-min-us", "100", "--t-max-us", "4000",
+                "--q-max-pc", str(HARD_Q), "--device", url + "&board=ideal", env=env)
+    assert p.returncode == 0 and "limits: ok" in p.stdout, p.stderr
+    p = run_cli("info", "--device", url, env=env)
+    assert p.returncode == 0 and "hard limits: I <= 9800 uA, T <= 8000 us, Q <= 9800000 pC" in p.stdout, p.stdout
+    assert "(lowered)" in p.stdout and "lowered: the board's own limits x the DAC gain below 1 measured (ch0 0.9800)" \
+        in p.stdout and "held" not in p.stdout, p.stdout
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", "9900", "--t-min-us", "100", "--t-max-us", "4000",
+                "--q-max-pc", "5000000", "--device", url, env=env)
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1, p.stderr
+    assert ("i_max_ua=9900 out of range: the device accepts 1..9800 uA: its hard limits are the board's own x the DAC "
+            "gain below 1") in err[0] and "no DAC gain" not in err[0], err
