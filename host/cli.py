@@ -203,7 +203,7 @@ def cmd_info(a) -> int:
             else:
                 say(f"  ch{ch}: not calibrated")
             if c.vmon_gain_ppm or c.dac_gain_ppm:  # steadytouch selftest's correction
-                dac = f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}"
+                dac = f"DAC gain {c.dac_gain_ppm / 1e6:.4f}" if c.dac_gain_ppm else "DAC gain not measured"
                 if c.dac_gain_ppm and not i.dac_gain_applied:  # what the device itself says (GET_INFO's flags)
                     dac = (f"DAC gain {c.dac_gain_ppm / 1e6:.4f} stored, not applied: this board has no "
                            "gain-corrected DAC")

@@ -358,6 +358,11 @@ def test_info_says_a_dac_gain_is_stored_but_not_applied_on_the_ideal_board(tmp_p
     assert ("ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123 stored, not applied: this board has no "
             "gain-corrected DAC") in ideal.stdout, ideal.stdout
     assert "ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123\n" in real.stdout, real.stdout
+    # a monitor-only correction: its DAC gain is not measured (was "DAC gain 1.0000" under "held: ... no DAC gain")
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n0 1010000 -30 0\n")
+    real = run("info", "--device", "sim://steady", env=env)
+    assert "ch0: monitor gain 1.0100 offset -30 mV, DAC gain not measured\n" in real.stdout, real.stdout
+    assert "no DAC gain was measured" in real.stdout and "1.0000" not in real.stdout
 
 
 class Recorder:
