@@ -226,9 +226,6 @@ def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason(tmp_path):
     assert p.returncode == 2 and len(err) == 1, p.stderr
     assert err[0].startswith(f"steadytouch: --i0-ua=9800 out of range: the device's soft limits are 500..{HELD_I} uA")
     assert "no DAC gain was measured" in err[0] and "--scope" in err[0] and not list(tmp_path.iterdir())
-    # nothing was sent: the soft limits are as they booted
-    p = run_cli("info", "--device", url)
-    assert f"soft limits: I 500-{HELD_I} uA" in p.stdout
     # the ideal board (its current exactly the commanded one) is not held: 9800 is accepted there
     p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", "9800", "--t-min-us", "100", "--t-max-us", "4000",
                 "--q-max-pc", "5000000", "--device", url + "&board=ideal")
@@ -313,3 +310,28 @@ def test_a_dac_gain_below_1_lowers_the_limits_only_where_it_is_applied_and_the_h
     assert p.returncode == 2 and len(err) == 1, p.stderr
     assert ("i_max_ua=9900 out of range: the device accepts 1..9800 uA: its hard limits are the board's own x the DAC "
             "gain below 1") in err[0] and "no DAC gain" not in err[0], err
+
+
+def test_a_limits_refused_by_the_host_sends_nothing_and_changes_nothing():
+    """On one open transport (every sim:// CLI call boots a new VM, so a check across two calls says nothing):
+    SET_LIMITS above the held limit is refused by the host, no report is written, and the device's soft limits
+    are as they were."""
+    import pytest
+    from steadytouch.device import Device
+    from steadytouch.protocol import CommandError
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady?channels=2") as t:
+        d = Device(t)
+        before = d.info()
+        sent = []
+        write = t.write
+        t.write = lambda rep: (sent.append(bytes(rep)), write(rep))[1]
+        for v in ((500, 9800, 100, 4000, 5_000_000), (500, 5000, 100, 4000, HELD_Q + 1)):
+            with pytest.raises(CommandError, match="no DAC gain was measured"):
+                d.limits(*v)
+        assert sent == []
+        after = d.info()
+        assert [r[0] for r in sent] == [hp.CMD_GET_INFO]
+    soft = lambda i: (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc)  # noqa: E731
+    assert soft(after) == soft(before) == (500, HELD_I, before.t_min_us, before.t_max_us, HELD_Q)
