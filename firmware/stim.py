@@ -42,7 +42,7 @@ except ImportError:  # CPython: no heap lock
         return x
 
 
-FW_VERSION = (0, 1, 0)
+FW_VERSION = (0, 2, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ

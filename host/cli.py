@@ -184,6 +184,9 @@ def cmd_info(a) -> int:
         say(f"{a.device}: steadytouch firmware {i.firmware} on {i.board}, {i.n_channels} channel(s)")
         say(f"  hard limits: I <= {i.hard_i_max_ua} uA, T <= {i.hard_t_max_us} us, Q <= {i.hard_q_max_pc} pC, "
             f"compliance {i.compliance_mv / 1000:g} V" + (" (held)" if i.held else " (lowered)" if i.dac_low else ""))
+        if not i.reports_held_limits:
+            say(f"  firmware {i.firmware} reports the board's nominal hard limits even where they are held (a "
+                "channel with no DAC gain latches above x 0.965 at the gate): `steadytouch flash` updates it")
         if i.held:
             say(f"  held: {held_reason()}")
         elif i.dac_low:

@@ -149,6 +149,13 @@ class Info:
         return bool(self.flags & hp.INFO_FLAG_HELD)
 
     @property
+    def reports_held_limits(self) -> bool:
+        """Firmware 0.2.0 on: the hard fields are the limits in force (held, lowered) and SET_LIMITS refuses above
+        them. Before it: the board's nominal limits, never flagged, while the gate latched above 9650 uA on a
+        board with no DAC gain (an old board: `steadytouch flash` updates it)."""
+        return tuple(int(x) for x in self.firmware.split(".")) >= FW_HELD_LIMITS
+
+    @property
     def dac_low(self) -> bool:
         """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits by a DAC gain below 1
         applied on a channel (INFO_FLAG_DAC_LOW; firmware before it: never set)."""
@@ -166,6 +173,7 @@ class Info:
 HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held below nominal (3.5 %)
 
 
+FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
 DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 measured on a channel (the current it "
                   "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
 

@@ -335,3 +335,19 @@ def test_a_limits_refused_by_the_host_sends_nothing_and_changes_nothing():
         assert [r[0] for r in sent] == [hp.CMD_GET_INFO]
     soft = lambda i: (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc)  # noqa: E731
     assert soft(after) == soft(before) == (500, HELD_I, before.t_min_us, before.t_max_us, HELD_Q)
+
+
+def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an_older_one():
+    """GET_INFO's hard fields and SET_LIMITS's rule changed: the minor version is 0.2.0; the host tells an older
+    board (nominal hard fields, no flag) from it and `info` says to update it."""
+    import dataclasses
+
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady?channels=1") as t:
+        i = Device(t).info()
+    assert i.firmware == "0.2.0" and i.reports_held_limits and i.held
+    old = dataclasses.replace(i, firmware="0.1.0", flags=i.flags & ~hp.INFO_FLAG_HELD)
+    assert not old.reports_held_limits and not dataclasses.replace(i, firmware="0.1.9").reports_held_limits
+    assert dataclasses.replace(i, firmware="1.0.0").reports_held_limits
