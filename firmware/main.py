@@ -188,9 +188,13 @@ def auto_refused(s, cmd, res, detail, i0, t0, x, y):
     limits), and, only when the held hard limits are the cause, that they are held and why."""
     lim = s.lim
     held = s.no_dac_gain() and (s.held_limit(0) < i0 <= s.hard_i or s.held_limit(1) < i0 * t0 <= s.hard_q)
-    why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; `steadytouch selftest "
-           "--load-ohm OHMS --scope` measures it and lifts the hold)" % (s.held_limit(0), s.held_limit(1))
-           if held else "")
+    why = ""
+    if held and s.takes_dac_gain():
+        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; `steadytouch selftest "
+               "--load-ohm OHMS --scope` measures it and lifts the hold)" % (s.held_limit(0), s.held_limit(1)))
+    elif held:
+        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain is applied, this board's DAC path "
+               "takes none)" % (s.held_limit(0), s.held_limit(1)))
     if cmd == hp.CMD_CALIBRATE and res == hp.RES_OUT_OF_RANGE:
         if detail == hp.O_ARG:
             return "I0 %d uA out of range: the device accepts %d..%d uA%s" % (i0, lim[0], lim[1], why)

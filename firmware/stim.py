@@ -1046,6 +1046,11 @@ class Stimulator:
             k += 1
         return m
 
+    def takes_dac_gain(self):
+        """The board's DAC path applies a stored DAC gain (GET_INFO's INFO_FLAG_DAC_GAIN): only
+        then does `selftest --scope` lift a hold."""
+        return bool(self._dac_applied)
+
     def no_dac_gain(self):
         """True while some channel's limits are held for want of a DAC gain (_dac_limits: none
         applied, on a board whose current is not exactly the commanded one): GET_INFO's

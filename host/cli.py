@@ -188,7 +188,7 @@ def cmd_info(a) -> int:
             say(f"  firmware {i.firmware} reports the board's nominal hard limits even where they are held (a "
                 "channel with no DAC gain latches above x 0.965 at the gate): `steadytouch flash` updates it")
         if i.held:
-            say(f"  held: {held_reason()}")
+            say(f"  held: {held_reason(i.dac_gain_applied)}")
         elif i.dac_low:
             low = [f"ch{ch} {c.dac_gain_ppm / 1e6:.4f}" for ch in range(i.n_channels)
                    for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < 1000000]
@@ -433,7 +433,7 @@ def _why_not_higher(i: Info, beyond_hard: bool, sim: bool = False) -> str:
     """Why a value above the device's soft limits is refused: the hard limits it reports (held for want of a DAC
     gain: say so and how to lift it), or soft limits `steadytouch limits` may raise (sim: board_config's)."""
     if beyond_hard and i.held:
-        return f"; {held_reason()}"
+        return f"; {held_reason(i.dac_gain_applied)}"
     if beyond_hard:
         return " (the board's hard limits)"
     if sim:

@@ -164,7 +164,7 @@ class Info:
     def lowered_reason(self) -> str:
         """Why the hard current and charge limits are below the board's own, or '' (neither flag)."""
         if self.held:
-            return held_reason()
+            return held_reason(self.dac_gain_applied)
         if self.dac_low:
             return DAC_LOW_REASON
         return ""
@@ -178,8 +178,12 @@ DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 me
                   "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
 
 
-def held_reason() -> str:
-    """Why a board's hard current and charge limits are held (Info.held), and how to lift it: one phrase."""
+def held_reason(takes_dac_gain: bool = True) -> str:
+    """Why a board's hard current and charge limits are held (Info.held), and how to lift it: one phrase. The
+    advice to measure the DAC gain only for a board whose DAC path applies one (Info.dac_gain_applied)."""
+    if not takes_dac_gain:
+        return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain is applied "
+                "(this board's DAC path takes none: the hold stays)")
     return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain was measured "
             "(run `steadytouch selftest --load-ohm OHMS --scope` to measure it and lift the hold)")
 

@@ -351,3 +351,26 @@ def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an
     old = dataclasses.replace(i, firmware="0.1.0", flags=i.flags & ~hp.INFO_FLAG_HELD)
     assert not old.reports_held_limits and not dataclasses.replace(i, firmware="0.1.9").reports_held_limits
     assert dataclasses.replace(i, firmware="1.0.0").reports_held_limits
+
+
+def test_the_advice_to_measure_the_dac_gain_only_for_a_board_that_takes_one():
+    """Held on a board whose DAC path applies no DAC gain (GET_INFO without INFO_FLAG_DAC_GAIN): `selftest --scope`
+    would not lift it, so the reason says the hold stays instead of advising it."""
+    import dataclasses
+
+    from steadytouch.device import Device
+    from steadytouch.protocol import Commands, CommandError
+    from steadytouch.transport import open_transport
+
+    import pytest
+
+    with open_transport("sim://steady?channels=1") as t:
+        i = Device(t).info()
+    assert i.held and i.dac_gain_applied and "--scope" in i.lowered_reason()
+    no_dac = dataclasses.replace(i, flags=i.flags & ~hp.INFO_FLAG_DAC_GAIN)
+    assert no_dac.held and "--scope" not in no_dac.lowered_reason() and "the hold stays" in no_dac.lowered_reason()
+    c = Commands()
+    c.know(no_dac)
+    with pytest.raises(CommandError) as e:
+        c.set_limits(500, HELD_I + 1, 100, 4000, 5_000_000)
+    assert "the hold stays" in str(e.value) and "selftest" not in str(e.value)
