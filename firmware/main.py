@@ -170,17 +170,43 @@ def parse(argv):
 
 
 def auto_start(s, o, now):
-    """Calibrate, set the mode and arm every channel, through the command handler."""
+    """Calibrate, set the mode and arm every channel, through the command handler; then GET_INFO
+    (its report tells a recording the limits in force: held on a board with no DAC gain)."""
     b = bytearray(hp.REPORT_LEN)
     i0, t0, x, y = o["auto"]
     for rep in (hp.cmd_set_mode(b, o["mode"]), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, i0, t0, x, y),
-                hp.cmd_arm(bytearray(64), hp.CH_ALL)):
+                hp.cmd_arm(bytearray(64), hp.CH_ALL), hp.cmd_get_info(bytearray(64))):
         res = s.handle(rep, now)
         s.board.send(s.tx)
         if res != hp.RES_OK:
-            raise UsageError("--auto: the device refused command 0x%02x with result %d (detail byte %d)"
-                             % (rep[0], res, s.tx[hp.O_DETAIL]))
+            raise UsageError("--auto: " + auto_refused(s, rep[0], res, s.tx[hp.O_DETAIL], i0, t0, x, y))
     s.sync_outputs()
+
+
+def auto_refused(s, cmd, res, detail, i0, t0, x, y):
+    """Why the device refused --auto's command: the value and the range it accepts (the soft
+    limits), and, only when the held hard limits are the cause, that they are held and why."""
+    lim = s.lim
+    held = s.no_dac_gain() and (s.held_limit(0) < i0 <= s.hard_i or s.held_limit(1) < i0 * t0 <= s.hard_q)
+    why = ""
+    if held and s.takes_dac_gain():
+        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; `steadytouch selftest "
+               "--load-ohm OHMS --scope` measures it and lifts the hold)" % (s.held_limit(0), s.held_limit(1)))
+    elif held:
+        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain is applied, this board's DAC path "
+               "takes none)" % (s.held_limit(0), s.held_limit(1)))
+    if cmd == hp.CMD_CALIBRATE and res == hp.RES_OUT_OF_RANGE:
+        if detail == hp.O_ARG:
+            return "I0 %d uA out of range: the device accepts %d..%d uA%s" % (i0, lim[0], lim[1], why)
+        if detail == hp.O_ARG + 2 and lim[2] <= t0 <= lim[3]:
+            return ("I0 x T0 = %d pC out of range: the device accepts up to %d pC%s" % (i0 * t0, lim[4], why))
+        if detail == hp.O_ARG + 2:
+            return "T0 %d us out of range: the device accepts %d..%d us" % (t0, lim[2], lim[3])
+        if detail == hp.O_ARG + 4:
+            return "XSTAR %d ohm out of range: the device accepts %d..0 ohm" % (x, sc.X_STAR_MIN_OHM)
+        if detail == hp.O_ARG + 8:
+            return "YSTAR %d pC out of range: the device accepts 0..%d pC (below I0 x T0)" % (y, i0 * t0 - 1)
+    return "the device refused command 0x%02x (result %d, byte %d)%s" % (cmd, res, detail, why)
 
 
 def main_sim(argv):

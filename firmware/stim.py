@@ -42,7 +42,7 @@ except ImportError:  # CPython: no heap lock
         return x
 
 
-FW_VERSION = (0, 1, 0)
+FW_VERSION = (0, 2, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
@@ -295,6 +295,7 @@ class Stimulator:
             if v:
                 c.vmon_stored = v
                 self._vmon_apply(c, v[0], v[1], v[2] if len(v) > 2 else 0)
+        self._fit_limits()
         self.mode = sc.MODE_AKHTAR
         self.rate_hz = 0
         self.period_us = 0
@@ -737,9 +738,11 @@ class Stimulator:
         b[hp.O_FW + 1] = FW_VERSION[1]
         b[hp.O_FW + 2] = FW_VERSION[2]
         b[hp.O_FW + 3] = self.n
-        hp.put_u16(b, hp.O_HARD_I, self.hard_i)
+        # the hard current and charge limits in force: held below the board's nominal ones while
+        # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (held_limit)
+        hp.put_u16(b, hp.O_HARD_I, self.held_limit(0))
         hp.put_u16(b, hp.O_HARD_T, self.hard_t)
-        hp.put_i32(b, hp.O_HARD_Q, self.hard_q)
+        hp.put_i32(b, hp.O_HARD_Q, self.held_limit(1))
         hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
         lim = self.lim
         hp.put_u16(b, hp.O_LIM, lim[0])
@@ -756,8 +759,14 @@ class Stimulator:
             b[hp.O_BOARD + k] = name[k]
             k += 1
         b[hp.O_INFO_VMON] = self.vmon_state
+        f = 0
         if self._dac_applied:  # a stored DAC gain scales this board's DAC (else: stored, not applied)
-            b[hp.O_INFO_FLAGS] = hp.INFO_FLAG_DAC_GAIN
+            f = hp.INFO_FLAG_DAC_GAIN
+        if self.no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
+            f |= hp.INFO_FLAG_HELD
+        elif self.held_limit(0) < self.hard_i or self.held_limit(1) < self.hard_q:
+            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below 1 applied on a channel
+        b[hp.O_INFO_FLAGS] = f
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
 
@@ -953,7 +962,7 @@ class Stimulator:
             if self.chans[k].armed:
                 return self._ack(r, hp.RES_BAD_STATE, 0)
             k += 1
-        if not 1 <= i_max <= self.hard_i:
+        if not 1 <= i_max <= self.held_limit(0):  # the hard limit every channel may deliver (_dac_limits)
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2)
         if not 1 <= i_min <= i_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
@@ -961,7 +970,7 @@ class Stimulator:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)  # or the frame would not fit
         if not hp.T_FLOOR_US <= t_min <= t_max:
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 4)
-        if not i_min * t_min <= q_max <= self.hard_q:
+        if not i_min * t_min <= q_max <= self.held_limit(1):
             return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)
         k = 0
         while k < self.n:  # a calibration outside the new limits must be sent again
@@ -1013,13 +1022,80 @@ class Stimulator:
         hi = self.hard_i
         hq = self.hard_q
         f = dac_ppm // 100
-        if not self._dac_exact and (not dac_ppm or not self._dac_applied):  # no gain applied
-            f = hp.VMON_DAC_PPM_MIN // 100
+        if not dac_ppm or not self._dac_applied:  # no gain applied: the board's error is not known ...
+            f = 0 if self._dac_exact else hp.VMON_DAC_PPM_MIN // 100  # ... unless it has none (the full limits)
         if 0 < f < 10000:
             hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 11000
             hq = (hq // 10000) * f + (hq % 10000) * f // 10000
         c.hard_i_d = hi
         c.hard_q_d = hq
+
+    def held_limit(self, q):
+        """The held hard limit on the current (q 0, uA) or the charge (q 1, pC): the lowest
+        a channel may report delivering (_dac_limits: the hard limits x VMON_DAC_PPM_MIN while
+        a channel has no DAC gain applied, x a gain below 1 while one is). The limit in force
+        for every controller: SET_LIMITS refuses above it, _fit_limits lowers the soft limits
+        to it, GET_INFO reports it. Allocates nothing."""
+        k = 0
+        m = 0
+        while k < self.n:
+            c = self.chans[k]
+            x = c.hard_q_d if q else c.hard_i_d
+            if k == 0 or x < m:
+                m = x
+            k += 1
+        return m
+
+    def takes_dac_gain(self):
+        """The board's DAC path applies a stored DAC gain (GET_INFO's INFO_FLAG_DAC_GAIN): only
+        then does `selftest --scope` lift a hold."""
+        return bool(self._dac_applied)
+
+    def no_dac_gain(self):
+        """True while some channel's limits are held for want of a DAC gain (_dac_limits: none
+        applied, on a board whose current is not exactly the commanded one): GET_INFO's
+        INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it."""
+        if self._dac_exact:
+            return False
+        if not self._dac_applied:
+            return True
+        k = 0
+        while k < self.n:
+            if not self.chans[k].vmon_dac:
+                return True
+            k += 1
+        return False
+
+    def _fit_limits(self):
+        """The soft current and charge limits never above held_limit(): a controller then never
+        proposes a pulse the hard-limit check before the gate (_pulse) would latch (it stays
+        the last line). At boot and after every SET_VMON. Lowered only (a DAC gain stored later
+        does not raise them: SET_LIMITS may, up to held_limit()); when lowered, every controller gets
+        the limits again and a calibration outside them must be sent again (as after SET_LIMITS).
+        Allocates nothing (SET_VMON applies under the heap lock); products < 2**30 (soft limits
+        within the core's envelope)."""
+        lim = self.lim
+        hi = self.held_limit(0)
+        hq = self.held_limit(1)
+        if lim[1] <= hi and lim[4] <= hq:
+            return
+        if lim[1] > hi:
+            lim[1] = hi
+        if lim[0] > lim[1]:
+            lim[0] = lim[1]
+        if lim[4] > hq:
+            lim[4] = hq
+        if lim[4] < lim[0] * lim[2]:  # (q_max >= i_min t_min: the core's own rule)
+            lim[0] = lim[4] // lim[2]
+            if lim[0] < 1:  # (a board config whose hard charge is below t_min: refused by the core)
+                lim[0] = 1
+        k = 0
+        while k < self.n:
+            c = self.chans[k]
+            if c.have_cal and not (lim[0] <= c.i0 <= lim[1] and c.i0 * c.t0 <= lim[4]):
+                c.have_cal = False
+            c.ctl.set_limits(lim[0], lim[1], lim[2], lim[3], lim[4])
+            k += 1
 
     def _vmon_bad(self, r, o):
         # the OUT byte of the first refused word of one channel's correction at o (its
@@ -1110,4 +1186,5 @@ class Stimulator:
             o = hp.O_ARG + 4 + step * (k - lo)
             self._vmon_apply(self.chans[k], hp.get_i32(r, o), hp.get_i32(r, o + 4), hp.get_i32(r, o + 8))
             k += 1
+        self._fit_limits()
         return self._ack(r, hp.RES_OK, 0)

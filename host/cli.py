@@ -20,7 +20,7 @@ import sensation_core as sc
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
 from .files import FileProblem, Outputs, dump_json
-from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration
+from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration, held_reason
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
@@ -83,10 +83,15 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
     return lines
 
 
-def sim_meta(a, cal: Calib, m: str) -> dict:
+def sim_meta(a, cal: Calib, m: str, info: Info | None = None) -> dict:
+    """A simulated run's header. Its limits: the device's own (info: the GET_INFO its --auto start answers; the
+    realistic board without a DAC gain holds them, `audit` replays with them), else board_config's."""
+    lim = default_limits() if info is None else {
+        "i_min_ua": info.i_min_ua, "i_max_ua": info.i_max_ua, "t_min_us": info.t_min_us, "t_max_us": info.t_max_us,
+        "q_max_pc": info.q_max_pc}
     return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
             "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
-            "y_star_pc": cal.y_star_pc, **default_limits(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            "y_star_pc": cal.y_star_pc, **lim, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 
 def cmd_sim(a) -> int:
@@ -95,6 +100,9 @@ def cmd_sim(a) -> int:
     _lab_check(a)
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     cal = Calib(a.i0_ua, a.t0_us, a.x_star_ohm, a.y_star_pc)
+    with open_transport(f"sim://steady?channels={a.channels}" + ("&board=ideal" if a.ideal_board else "")) as t:
+        # the simulated board's own soft limits (held without a DAC gain in its flash), as `calibrate` checks them
+        _within_soft_limits(Device(t).info(), cal.i0_ua, cal.t0_us, "--i0-ua", sim=True)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -133,8 +141,9 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         if bad:
             raise SimError(f"the device refused: {bad[0].words()}")
         tel = [r for r in reps if isinstance(r, Telemetry)]
+        info = next((r for r in reps if isinstance(r, Info)), None)
         path = out / f"{stem}-{m}.csv"
-        write_recording(outputs.path(path), tel, sim_meta(a, cal, m))
+        write_recording(outputs.path(path), tel, sim_meta(a, cal, m, info))
         runs[m] = tel
         files.append(path)
         done = Progress(f"  sim {m}", clock=prog.clock)  # the summary, from every report of the run
@@ -149,7 +158,7 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
             auto = [c.set_mode(MODES[m]), c.calibrate(cal.i0_ua, cal.t0_us, cal.x_star_ohm, cal.y_star_pc),
                     c.arm()]  # what the simulated board's --auto did, for the markers
             auto = [r[:1] + b"\0" + r[2:] for r in auto]  # its commands carry tag 0
-            meta = dict(sim_meta(a, cal, m), serial=f"sim-{stem}-{m}", n_channels=a.channels)
+            meta = dict(sim_meta(a, cal, m, info), serial=f"sim-{stem}-{m}", n_channels=a.channels)
             say(stream_run(meta, a.channels, reps, auto, a.lsl_wait, say))
     if not a.no_plot:
         from .plot import fig5
@@ -174,7 +183,17 @@ def cmd_info(a) -> int:
         i = d.info()
         say(f"{a.device}: steadytouch firmware {i.firmware} on {i.board}, {i.n_channels} channel(s)")
         say(f"  hard limits: I <= {i.hard_i_max_ua} uA, T <= {i.hard_t_max_us} us, Q <= {i.hard_q_max_pc} pC, "
-            f"compliance {i.compliance_mv / 1000:g} V")
+            f"compliance {i.compliance_mv / 1000:g} V" + (" (held)" if i.held else " (lowered)" if i.dac_low else ""))
+        if not i.reports_held_limits:
+            say(f"  firmware {i.firmware} reports the board's nominal hard limits even where they are held (a "
+                "channel with no DAC gain latches above x 0.965 at the gate): `steadytouch flash` updates it")
+        if i.held:
+            say(f"  held: {held_reason(i.dac_gain_applied)}")
+        elif i.dac_low:
+            low = [f"ch{ch} {c.dac_gain_ppm / 1e6:.4f}" for ch in range(i.n_channels)
+                   for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < 1000000]
+            say(f"  lowered: the board's own limits x the DAC gain below 1 measured ({', '.join(low)}): the current "
+                "it reports is the delivered one")
         say(f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC")
         say(f"  mode {MODE_WORDS.get(i.mode, i.mode)}, {i.rate_hz} Hz, "
             f"keep-alive {'off' if not i.keepalive_ms else str(i.keepalive_ms) + ' ms'}")
@@ -187,7 +206,7 @@ def cmd_info(a) -> int:
             else:
                 say(f"  ch{ch}: not calibrated")
             if c.vmon_gain_ppm or c.dac_gain_ppm:  # steadytouch selftest's correction
-                dac = f"DAC gain {(c.dac_gain_ppm or 1000000) / 1e6:.4f}"
+                dac = f"DAC gain {c.dac_gain_ppm / 1e6:.4f}" if c.dac_gain_ppm else "DAC gain not measured"
                 if c.dac_gain_ppm and not i.dac_gain_applied:  # what the device itself says (GET_INFO's flags)
                     dac = (f"DAC gain {c.dac_gain_ppm / 1e6:.4f} stored, not applied: this board has no "
                            "gain-corrected DAC")
@@ -326,6 +345,7 @@ def cmd_calibrate_interactive(a) -> int:
     prog = Progress("calibrate")
     with open_transport(a.device) as t:
         d = Device(t)
+        _levels_within_hard_limits(d.info(), levels)
         s = _GuidedSession(Watch(d, prog, lambda: s.where()), _Asks(responder, prog), prog, len(levels), channel=a.channel or 0,
                            present_s=a.present_s, log=lambda text: (prog.clear(), say(text)))
         say(f"guided calibration on {a.device}, channel {a.channel or 0} (q stops at once)")
@@ -371,6 +391,19 @@ def cmd_calibrate_interactive(a) -> int:
     return 0
 
 
+def _levels_within_hard_limits(i: Info, levels: dict[str, int]) -> None:
+    """A reference level the board can never deliver at 200 us (above the hard limits it reports, e.g. held for
+    want of a DAC gain): one line before anything is presented. (Within them, the session keeps to the soft limits.)"""
+    from .session import T_STEPS_US
+
+    t_us = T_STEPS_US[0]
+    top = min(i.hard_i_max_ua, i.hard_q_max_pc // t_us)
+    for k, v in levels.items():
+        if v > top:
+            raise ValueError(f"--{k}-ua {v} out of range: the device accepts at most {top} uA at {t_us} us"
+                             + _why_not_higher(i, True))
+
+
 def cmd_calibrate(a) -> int:
     if a.interactive:
         return cmd_calibrate_interactive(a)
@@ -396,16 +429,30 @@ def cmd_calibrate(a) -> int:
     return 0
 
 
-def _within_soft_limits(i: Info, i0_ua: int, t0_us: int) -> None:
+def _why_not_higher(i: Info, beyond_hard: bool, sim: bool = False) -> str:
+    """Why a value above the device's soft limits is refused: the hard limits it reports (held for want of a DAC
+    gain: say so and how to lift it), or soft limits `steadytouch limits` may raise (sim: board_config's)."""
+    if beyond_hard and i.held:
+        return f"; {held_reason(i.dac_gain_applied)}"
+    if beyond_hard:
+        return " (the board's hard limits)"
+    if sim:
+        return " (the simulated board's, firmware/board_config.py)"
+    return " (`steadytouch limits` changes them, within the board's hard limits)"
+
+
+def _within_soft_limits(i: Info, i0_ua: int, t0_us: int, name: str = "i0_ua", sim: bool = False) -> None:
     """The device's own soft limits (read back from it), checked before the calibration is sent."""
+    t_name = "--t0-us" if sim else "t0_us"
     if not i.i_min_ua <= i0_ua <= i.i_max_ua:
-        raise ValueError(f"i0_ua={i0_ua} out of range: the device's soft limits are {i.i_min_ua}..{i.i_max_ua} uA "
-                         "(`steadytouch limits` changes them, within the board's hard limits)")
+        raise ValueError(f"{name}={i0_ua} out of range: the device's soft limits are {i.i_min_ua}..{i.i_max_ua} uA"
+                         + _why_not_higher(i, i0_ua > i.hard_i_max_ua, sim))
     if not i.t_min_us <= t0_us <= i.t_max_us:
-        raise ValueError(f"t0_us={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us "
-                         "(`steadytouch limits` changes them)")
+        raise ValueError(f"{t_name}={t0_us} out of range: the device's soft limits are {i.t_min_us}..{i.t_max_us} us"
+                         + _why_not_higher(i, False, sim))
     if i0_ua * t0_us > i.q_max_pc:
-        raise ValueError(f"i0_ua*t0_us={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} pC")
+        raise ValueError(f"{name}*{t_name}={i0_ua * t0_us} pC out of range: the device's charge limit is {i.q_max_pc} "
+                         "pC" + (_why_not_higher(i, True) if i0_ua * t0_us > i.hard_q_max_pc else ""))
 
 
 def _calibration_json(path) -> dict:

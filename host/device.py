@@ -154,6 +154,7 @@ class Device:
         within timeout_s (default: the transport's answer_s)."""
         if timeout_s is None:
             timeout_s = getattr(self.t, "answer_s", 2.0)
+        self.cmds.forget(report)  # a SET_VMON may move the hard limits in force: read them again before SET_LIMITS
         self._write(report)
         name = COMMAND_WORDS.get(report[0], f"0x{report[0]:02x}")
         deadline = time.monotonic() + timeout_s
@@ -195,6 +196,11 @@ class Device:
         return self.command(self.cmds.calibrate(i0_ua, t0_us, x_star_ohm, y_star_pc, ch))
 
     def limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
+        """SET_LIMITS, checked first against the hard limits the device reports (GET_INFO, read
+        here if not yet known): an i_max or q_max above them, e.g. held for want of a DAC gain,
+        is refused on the host with the reason (CommandError), nothing sent."""
+        if self.cmds.check and self.cmds.hard is None:
+            self.info()
         return self.command(self.cmds.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc))
 
     def mode(self, mode, rate_hz=0):

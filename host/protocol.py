@@ -142,6 +142,51 @@ class Info:
         """The board's DAC path applies a stored DAC gain (the ideal simulated board does not)."""
         return bool(self.flags & hp.INFO_FLAG_DAC_GAIN)
 
+    @property
+    def held(self) -> bool:
+        """hard_i_max_ua / hard_q_max_pc are held below the board's nominal limits (x 0.965) because
+        a channel has no DAC gain applied (INFO_FLAG_HELD; firmware before it: never set)."""
+        return bool(self.flags & hp.INFO_FLAG_HELD)
+
+    @property
+    def reports_held_limits(self) -> bool:
+        """Firmware 0.2.0 on: the hard fields are the limits in force (held, lowered) and SET_LIMITS refuses above
+        them. Before it: the board's nominal limits, never flagged, while the gate latched above 9650 uA on a
+        board with no DAC gain (an old board: `steadytouch flash` updates it)."""
+        return tuple(int(x) for x in self.firmware.split(".")) >= FW_HELD_LIMITS
+
+    @property
+    def dac_low(self) -> bool:
+        """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits by a DAC gain below 1
+        applied on a channel (INFO_FLAG_DAC_LOW; firmware before it: never set)."""
+        return bool(self.flags & hp.INFO_FLAG_DAC_LOW)
+
+    def lowered_reason(self) -> str:
+        """Why the hard current and charge limits are below the board's own, or '' (neither flag)."""
+        if self.held:
+            return held_reason(self.dac_gain_applied)
+        if self.dac_low:
+            return DAC_LOW_REASON
+        return ""
+
+
+HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held below nominal (3.5 %)
+
+
+FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
+DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 measured on a channel (the current it "
+                  "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
+
+
+def held_reason(takes_dac_gain: bool = True) -> str:
+    """Why a board's hard current and charge limits are held (Info.held), and how to lift it: one phrase. The
+    advice to measure the DAC gain only for a board whose DAC path applies one (Info.dac_gain_applied)."""
+    if not takes_dac_gain:
+        return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain is applied "
+                "(this board's DAC path takes none: the hold stays)")
+    return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain was measured "
+            "(run `steadytouch selftest --load-ohm OHMS --scope` to measure it and lift the hold)")
+
 
 @dataclass(frozen=True)
 class CalInfo:
@@ -431,10 +476,15 @@ class Commands:
         # a skin model this host set (SET_SKIN acknowledged, not removed on every channel since):
         # the frame rule then counts the model's work (the device checks its own state)
         self.model = 0
+        # the device's hard current and charge limits in force (GET_INFO: held while it has no DAC
+        # gain) and whether they are held, once known (know()); unknown again after a SET_VMON
+        self.hard: tuple[int, int, str] | None = None  # (I, Q, why they are below the board's own or '')
 
     def know(self, info: "Info") -> None:
-        """What a GET_INFO answer says of the frame: channels, rate and soft t_max."""
+        """What a GET_INFO answer says of the frame (channels, rate and soft t_max) and of the
+        hard limits in force (SET_LIMITS above them is then refused here, as the device does)."""
         self.frame = (info.n_channels, info.rate_hz, info.t_max_us)
+        self.hard = (info.hard_i_max_ua, info.hard_q_max_pc, info.lowered_reason())
 
     def applied(self, report: bytes) -> None:
         """The device acknowledged `report` (RES_OK): follow a new rate or t_max."""
@@ -451,6 +501,22 @@ class Commands:
             elif report[hp.O_OUT_CH] == hp.CH_ALL:
                 self.model = 0
         self.frame = (n, rate, t_max)
+
+    def forget(self, report: bytes) -> None:
+        """A report was sent whose outcome may move the hard limits in force (SET_VMON: a DAC gain
+        applied or removed), answered or not: they are unknown until the next GET_INFO."""
+        if report[0] == hp.CMD_SET_VMON:
+            self.hard = None
+
+    def _within_hard(self, i_max: int, q_max: int) -> None:
+        if self.hard is None:
+            return
+        hard_i, hard_q, reason = self.hard
+        why = f": {reason}" if reason else ""
+        if i_max > hard_i:
+            raise CommandError(f"i_max_ua={i_max} out of range: the device accepts 1..{hard_i} uA{why}")
+        if q_max > hard_q:
+            raise CommandError(f"q_max_pc={q_max} out of range: the device accepts up to {hard_q} pC{why}")
 
     def _fits(self, rate_hz: int, t_max_us: int, what: str, model: int | None = None) -> None:
         n = self.frame[0]
@@ -495,6 +561,7 @@ class Commands:
         v = (i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
         if self.check:
             v = check_limits(*v)
+            self._within_hard(v[1], v[4])
             if self.frame is not None:
                 self._fits(self.frame[1], v[3], "t_max")
         return bytes(hp.cmd_set_limits(bytearray(64), *v, self._next()))

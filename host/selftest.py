@@ -27,6 +27,9 @@ independent reference: with --scope the builder reads the plateau of a
 reference pulse across the load on a scope, V = g_dac x I_nominal x R, which
 gives g_dac; the monitor is then corrected by G / g_dac and the board scales its
 DAC's full scale by g_dac, so the current it reports is the one delivered.
+Without --scope a DAC gain the device already has (REP_CAL's, a scope measured it
+once) is kept and stored again with the new monitor gain G / g_dac: a self-test never
+erases it (which would hold the board's limits again, docs/safety.md).
 Units: uA, us, mV, ohm; gains in ppm in the stored file.
 """
 
@@ -84,6 +87,7 @@ class ChannelFit:
     worst_point_err_after: float  # largest |mean Rp of a test point - R| / R, corrected (noise averaged)
     rows: list = field(default_factory=list, repr=False)
     dac_gain: float = 0.0  # delivered / nominal current, from a scope reading (0: not measured)
+    dac_kept: bool = False  # dac_gain is the one the device had (a self-test without --scope keeps it)
 
     @property
     def gain_ppm(self) -> int:
@@ -196,7 +200,10 @@ def report_lines(fits: list[ChannelFit], load_ohm: int) -> list[str]:
     out.append("G = DAC gain x monitor gain (one resistor sees only their product; correcting the monitor by G "
                "makes Rp = Vp/I exact)")
     for f in fits:
-        if f.dac_gain:
+        if f.dac_gain and f.dac_kept:
+            out.append(f"ch{f.channel}: keeps the DAC gain {f.dac_gain:.4f} the device had (--scope measures it "
+                       f"again); the monitor's own gain is {f.gain_ppm / 1e6:.4f}")
+        elif f.dac_gain:
             out.append(f"ch{f.channel}: against the scope the DAC delivers {f.dac_gain:.4f} x nominal; the monitor's "
                        f"own gain is {f.gain_ppm / 1e6:.4f}")
     return out
@@ -284,6 +291,30 @@ def apply_in_ram(d, values: dict, n_channels: int) -> None:
 def put_back(d, old: dict, n_channels: int) -> None:
     """The corrections `old` ({ch: CalInfo}) read before the self-test, applied again in RAM."""
     apply_in_ram(d, {ch: (c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for ch, c in old.items()}, n_channels)
+
+
+def restore_limits(d, before, say) -> None:
+    """The soft limits the device had before the self-test (`before`: its GET_INFO then) set again
+    with SET_LIMITS: the self-test switches the correction off in RAM while it runs, which holds
+    them (the firmware lowers them to the held hard limits, and never raises them again). Capped
+    at the hard limits in force now (GET_INFO read again); a soft limit that stood at the hard
+    limit held then follows the hard limit (a stored DAC gain lifts the hold: the full limit).
+    One line when they could not be restored in full."""
+    now = d.info()
+    hi, hq = now.hard_i_max_ua, now.hard_q_max_pc
+    i_max = hi if before.held and before.i_max_ua >= before.hard_i_max_ua else min(before.i_max_ua, hi)
+    q_max = hq if before.held and before.q_max_pc >= before.hard_q_max_pc else min(before.q_max_pc, hq)
+    t_min, t_max = before.t_min_us, before.t_max_us
+    i_min = min(before.i_min_ua, i_max, q_max // t_min)
+    want = (i_min, i_max, t_min, t_max, q_max)
+    if (now.i_min_ua, now.i_max_ua, now.t_min_us, now.t_max_us, now.q_max_pc) != want:
+        d.limits(*want)
+    if i_max < before.i_max_ua or q_max < before.q_max_pc or i_min < before.i_min_ua:
+        from .protocol import held_reason
+
+        why = held_reason(now.dac_gain_applied) if now.held else "the hard limits the device reports are lower"
+        say(f"soft limits now I {i_min}..{i_max} uA, T {t_min}..{t_max} us, Q <= {q_max} pC (were I "
+            f"{before.i_min_ua}..{before.i_max_ua} uA, Q <= {before.q_max_pc} pC): {why}")
 
 
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms
@@ -388,10 +419,15 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
         d.disarm()
         old = {ch: d.calibration(ch) for ch in chans}
         done = False
+        failed = True  # an error on the way: the limits are restored best effort, the error is the message
         try:
             apply_in_ram(d, {ch: (0, 0, 0) for ch in chans}, info.n_channels)  # the raw path: off in RAM only
             rows = _measure(d, pts, chans, "selftest", "nothing stored")
             fits = [fit_channel(ch, rows[ch], load_ohm) for ch in chans]
+            if not scope:  # a DAC gain the device has (a scope measured it once) is kept, not erased
+                for f in fits:
+                    if old[f.channel].dac_gain_ppm:
+                        f.dac_gain, f.dac_kept = old[f.channel].dac_gain_ppm / 1e6, True
             for line in report_lines(fits, load_ohm):
                 say(line)
             check_range(fits)  # the path itself outside its window: out of specification, before any scope
@@ -403,6 +439,7 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 check_range(fits)
             worst = max(f.worst_rp_err_before for f in fits)
             if not store:
+                failed = False
                 return 0
             try:
                 back = store_on_device(d, fits, info.n_channels)
@@ -414,7 +451,8 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
             done = True
             say("stored on the device (its flash, read at every boot); read back: " + ", ".join(
                 f"ch{c.channel} {c.vmon_gain_ppm} ppm {c.vmon_offset_mv:+d} mV" for c in back)
-                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back) if scope else ""))
+                + ("; DAC gain " + ", ".join(f"ch{c.channel} {c.dac_gain_ppm} ppm" for c in back)
+                   if scope or any(c.dac_gain_ppm for c in back) else ""))
             if scope and not info.dac_gain_applied:
                 say("the DAC gain is stored, not applied: this board has no gain-corrected DAC (its current is the "
                     "commanded one)")
@@ -423,11 +461,17 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                 rows = _measure(d, check, chans, "selftest check", "the correction is stored on the device")
                 say(f"with the stored correction: worst Rp error {worst_rp_err(rows, chans, load_ohm):.2%} "
                     f"(was {worst:.2%})")
+            failed = False
         finally:
             if not done:  # put back what the device applied before (its flash was not touched)
                 with contextlib.suppress(Exception):  # best effort: the reason we stopped is the error
                     d.disarm()
                     put_back(d, old, info.n_channels)
+            if not failed:
+                restore_limits(d, info, say)
+            elif not done:  # (a store whose outcome is unknown: the message says to reset the board)
+                with contextlib.suppress(Exception):
+                    restore_limits(d, info, say)
     if save_dir is not None:
         say(f"a copy on this computer: {save(fits, Path(save_dir))}")
     if sim:  # a reset: the simulated board boots again and reads its flash

@@ -196,6 +196,7 @@ def run_firmware(scenario: str, mode: str, cal: Calib, channels: int = 1, seed: 
             p.kill()
             p.wait()
         p.stdin.close()
-    if rc != 0:
-        raise SimError(err[0] if err else f"the simulated device exited with code {rc}")
+    if rc != 0:  # the firmware's own line, without its "steadytouch firmware: " (the host's "steadytouch: " says it)
+        first = err[0].removeprefix("steadytouch firmware: ") if err else ""
+        raise SimError(f"the simulated device: {first}" if first else f"the simulated device exited with code {rc}")
     return [decode(r) for r in split_stdio_stream(b"".join(chunks))]

@@ -52,7 +52,7 @@ def run_main(*args, stdin=""):
         (["--rate", "abc"], "--rate: 'abc' is not a whole number"),
         (["--scenario", "nosuch"], "unknown scenario 'nosuch'"),
         (["--auto", "1000,1000"], "--auto takes I0_UA,T0_US,XSTAR_OHM,YSTAR_PC"),
-        (["--auto", "50000,1000,-1670,186000"], "refused command 0x12 with result 4"),
+        (["--auto", "50000,1000,-1670,186000"], "--auto: I0 50000 uA out of range: the device accepts 500.."),
         (["--bogus"], "unknown option --bogus"),
         (["--scenario", "/nonexistent/file.csv"], "steadytouch firmware:"),
     ],

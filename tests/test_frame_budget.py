@@ -174,7 +174,7 @@ def test_device_learns_the_frame_from_info_and_refuses_before_sending():
         assert d.cmds.frame == (2, 50, info.t_max_us) == (2, 50, 8000)
         with pytest.raises(CommandError, match="rate_hz=100 does not fit"):
             d.mode(sc_mode(), 100)
-        d.limits(500, 10000, 100, 3600, 10000000)
+        d.limits(500, info.hard_i_max_ua, 100, 3600, info.hard_q_max_pc)  # up to the hard limits it reports
         assert d.cmds.frame == (2, 50, 3600)
         d.mode(sc_mode(), 100)
         assert d.cmds.frame == (2, 100, 3600) and d.info().rate_hz == 100

@@ -358,6 +358,11 @@ def test_info_says_a_dac_gain_is_stored_but_not_applied_on_the_ideal_board(tmp_p
     assert ("ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123 stored, not applied: this board has no "
             "gain-corrected DAC") in ideal.stdout, ideal.stdout
     assert "ch0: monitor gain 1.0100 offset -30 mV, DAC gain 1.0123\n" in real.stdout, real.stdout
+    # a monitor-only correction: its DAC gain is not measured (was "DAC gain 1.0000" under "held: ... no DAC gain")
+    (tmp_path / "vmon_cal.txt").write_text(vmon_cal.CAL_HEADER + "\n0 1010000 -30 0\n")
+    real = run("info", "--device", "sim://steady", env=env)
+    assert "ch0: monitor gain 1.0100 offset -30 mV, DAC gain not measured\n" in real.stdout, real.stdout
+    assert "no DAC gain was measured" in real.stdout and "1.0000" not in real.stdout
 
 
 class Recorder:
@@ -455,3 +460,118 @@ def test_a_self_test_that_stops_before_the_store_puts_the_old_values_back_in_one
     assert [hp.get_i32(last, hp.O_ARG + 4 + hp.VMON_STRIDE * k + w) for k in (0, 1) for w in (0, 4, 8)] == [
         1020000, 100, 0, 990000, -50, 0]
     assert sum(1 for r in vmon if r[hp.O_ARG] == hp.VMON_STORE) == 0
+
+
+def _first_is(t):
+    """open_transport for st.run: the transport the test holds first (the self-test runs on the board as the
+    user left it), a new one after (the simulated reset that reads the flash back)."""
+    import contextlib
+
+    from steadytouch.transport import open_transport
+
+    calls = []
+
+    @contextlib.contextmanager
+    def opener(url):
+        calls.append(url)
+        if len(calls) == 1:
+            yield t
+        else:
+            with open_transport(url) as t2:
+                yield t2
+
+    return opener
+
+
+GAIN_1 = "steadytouch monitor correction v1\n0 1000000 0 1000000\n1 1000000 0 1000000\n"
+
+
+def _soft(i):
+    return (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc)
+
+
+@pytest.mark.parametrize("store", [False, True])
+def test_selftest_gives_back_the_soft_limits_it_found(tmp_path, monkeypatch, store):
+    """The self-test switches the correction off in RAM while it measures, which holds the limits (the firmware
+    lowers the soft ones to 9650 uA / 9.65 uC); afterwards the soft limits the board had are set again (were:
+    stuck at the held values until a reset, a calibration at 9800 uA refused)."""
+    import sensation_core as sc
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    (tmp_path / "vmon_cal.txt").write_text(GAIN_1)  # DAC gain 1.0 on both channels: not held
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        d = Device(t)
+        assert d.limits(500, 9800, 100, 4000, 9_800_000).ok
+        before = _soft(d.info())
+        assert st.run(url, 10000, None, 4, store, None, said.append, _first_is(t)) == 0
+        i = d.info()
+        assert (i.hard_i_max_ua, i.held) == (10000, False)
+        assert _soft(i) == before == (500, 9800, 100, 4000, 9_800_000)
+        d.mode(sc.MODE_OPEN_LOOP)
+        assert d.calibrate(9800, 300, -1670, 0).ok
+    assert not any(s.startswith("soft limits now") for s in said), said
+    if store:  # without --scope the DAC gain stored is kept (was: stored 0, the board held at 9650 uA)
+        assert [ln.split()[3] for ln in (tmp_path / "vmon_cal.txt").read_text().splitlines()[2:]] == ["1000000"] * 2
+        assert sum("keeps the DAC gain 1.0000 the device had" in s for s in said) == 2, said
+
+
+def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_held_soft_limits(tmp_path, monkeypatch):
+    """A fresh realistic board boots held (soft = hard = 9650 uA); `selftest --scope` stores a DAC gain on every
+    channel, which lifts the hold: the soft limits that stood at the held limit follow it to the full 10000 uA."""
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    code = st.SCOPE_PULSE[0] * 4096 // 10000
+    readings = iter(f"{code * 10000 / 4096 * board_sim.DAC_GAIN[ch] * 10:.1f}" for ch in (0, 1))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        d = Device(t)
+        i = d.info()
+        assert (i.held, i.i_max_ua, i.q_max_pc) == (True, 9650, 9_650_000)
+        st.run(url, 10000, None, 4, True, None, said.append, _first_is(t), scope=True, ask=lambda p: next(readings))
+        i = d.info()
+        stored = board_sim.parse_correction((tmp_path / "vmon_cal.txt").read_text(), 2)
+        f = min(min(stored[ch][2] // 100, 10000) for ch in (0, 1))
+        hard_i = 10000 * f // 10000  # the full limit (x a DAC gain below 1 where one was measured)
+        assert hard_i > 9650
+        assert (i.held, i.hard_i_max_ua, i.i_min_ua, i.i_max_ua) == (False, hard_i, 500, hard_i)
+        assert i.q_max_pc == i.hard_q_max_pc > 9_650_000
+    assert not any(s.startswith("soft limits now") for s in said), said
+
+
+def test_selftest_says_when_the_soft_limits_cannot_be_given_back_in_full(tmp_path, monkeypatch):
+    """Soft limits above what the board may deliver after the self-test (a stored DAC gain of 0.98 on ch0 now:
+    its limits x 0.98) are set to the hard limits in force, and one line says so."""
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        d = Device(t)
+        d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])
+        assert d.limits(500, 9900, 100, 4000, 9_900_000).ok
+        run = _first_is(t)
+
+        def measure(d, pts, chans, label, kept):  # the self-test's sweep; then ch0's DAC gain is lowered
+            rows = st.measure(d, pts, chans, 4)
+            d.set_vmon_all([(0, 0, 980000), (0, 0, 1000000)])
+            return rows
+
+        def put_back(d, old, n):  # (the old correction is what is in RAM now: 0.98 on ch0)
+            st.apply_in_ram(d, {0: (0, 0, 980000), 1: (0, 0, 1000000)}, n)
+
+        monkeypatch.setattr(st, "put_back", put_back)
+        st.run(url, 10000, None, 4, False, None, said.append, run, measure_with=measure)
+        i = d.info()
+    assert (i.hard_i_max_ua, i.i_max_ua, i.q_max_pc) == (9800, 9800, 9_800_000)
+    line = [s for s in said if s.startswith("soft limits now")]
+    assert line == [f"soft limits now I 500..9800 uA, T 100..4000 us, Q <= 9800000 pC (were I 500..9900 uA, "
+                    f"Q <= 9900000 pC): the hard limits the device reports are lower"], said

@@ -20,7 +20,8 @@ EXE = str(Path(sys.executable).parent / "steadytouch")
 def test_session_presses_keys_and_stays_within_limits():
     with open_transport("sim://steady?channels=1") as t:
         d = Device(t)
-        d.limits(500, 2000, 100, 8000, 10_000_000)  # a low soft ceiling the strong level will hit
+        # a low soft ceiling the strong level will hit; the charge up to the hard limit the device reports
+        d.limits(500, 2000, 100, 8000, d.info().hard_q_max_pc)
         r = SimResponder(seed=3, a=0.62)  # not on I^2 T = const: the person must adjust
         s = Session(d, r, present_s=0.12, log=lambda *a: None)
         res = s.run({"weak": 1500, "strong": 2700})

@@ -10,6 +10,7 @@ simulated board):
 
 import hid_protocol as hp
 from fw_harness import run_fw
+from steadytouch.protocol import decode
 
 SETUP = """
 import board_config as cfg
@@ -24,6 +25,15 @@ def cmd(s, clock, rep):
     s.handle(bytearray(rep), clock.ticks_us())
     s.sync_outputs()
     return s.tx[hp.O_RESULT]
+
+def force_nominal_soft_limits(s):
+    # behind the firmware's back: the soft current and charge limits at the board's nominal hard ones, past
+    # what _fit_limits holds them to (no command can do this). The check right before the gate opens is
+    # the last line; these tests show it still holds when the soft layer above it has failed.
+    s.lim[1] = s.hard_i
+    s.lim[4] = s.hard_q
+    for c in s.chans:
+        c.ctl.set_limits(s.lim[0], s.lim[1], s.lim[2], s.lim[3], s.lim[4])
 """
 
 
@@ -53,10 +63,11 @@ out = []
 for dac in (0, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX, 1000000):
     s, board, clock = make("steady", 20)
     b = bytearray(64)
-    r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac)),
-         cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
-         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 1250, 8000, -1670, 0)),
-         cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+    r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac))]
+    force_nominal_soft_limits(s)  # (else a gain below 1 would hold them: the pulse below is refused ahead)
+    r += [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+          cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 1250, 8000, -1670, 0)),  # at the nominal hard charge
+          cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
     s.run(5)
     c = s.chans[0]
     out.append([dac, r, c.stop, c.di * c.dt, board.last_i_ua[0] * c.dt if c.dt else 0.0, s.hard_q])
@@ -160,8 +171,11 @@ def test_no_dac_gain_applied_holds_the_hard_limits_to_the_dac_windows_low_edge(t
     ignored at boot (VMON_BAD); every DAC then runs uncorrected and a realistic board's ch1 (DAC gain
     1.006) delivered 10058 uA at its hard limit of 10000. With no DAC gain applied (a fresh board, a
     file ignored, a self-test without --scope) the reported current and charge are held to the hard
-    limits x VMON_DAC_PPM_MIN: a DAC whose gain is anywhere in its window stays within them. The
-    ideal board (its current exactly the commanded one) keeps the full limits."""
+    limits x VMON_DAC_PPM_MIN: a DAC whose gain is anywhere in its window stays within them. The soft
+    limits follow (stim._fit_limits): a CALIBRATE or SET_LIMITS above the held limits is refused ahead,
+    GET_INFO reports them (INFO_FLAG_HELD); the gate's own check, the last line, still latches a pulse
+    above them when the soft layer is bypassed. The ideal board (its current exactly the commanded one)
+    keeps the full limits."""
     d = str(tmp_path)
     (tmp_path / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 1050000\n1 0 0 1006000\n")
     _, res, _ = run_fw(SETUP + f"""
@@ -178,22 +192,46 @@ for name, flash, ideal in (("fresh", None, False), ("bad file", {d!r}, False), (
         rows.append([c.hard_i_d, c.hard_q_d, rep, bd.analog.physical_ua(c.ch, bd.code[c.ch])])
     b = bytearray(64)
     r = [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
-         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)),
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)),  # above the soft limit: refused
+         cmd(s, clock, hp.cmd_set_limits(b, 1, s.hard_i, 100, 1000, s.hard_q)),  # refused above the held limits
+         cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.lim[1], 1000, -1670, 0)),  # at the held soft limit
          cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
     s.run(4)
     pulses = [[c.stop, c.di, bd.last_i_ua[c.ch]] for c in s.chans]
-    out[name] = [s.vmon_state, rows, r, pulses, s.hard_i, s.hard_q]
+    s.handle(bytearray(hp.cmd_get_info(b, 7)), clock.ticks_us())
+    info = bytes(s.tx).hex()
+    lim = list(s.lim)
+    # the gate's check stays the last line: the soft limits forced to the nominal ones behind the firmware's
+    # back, a pulse at the hard limit's current is stopped, never delivered
+    r.append(cmd(s, clock, hp.cmd_disarm(b, hp.CH_ALL)))
+    force_nominal_soft_limits(s)
+    r += [cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, s.hard_i, 1000, -1670, 0)), cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+    s.run(4)
+    gate = [[c.stop, c.di, bd.last_i_ua[c.ch]] for c in s.chans]
+    out[name] = [s.vmon_state, rows, r, pulses, s.hard_i, s.hard_q, lim, info, gate]
 result(**out)
 """)
     r = res[0]
     assert r["bad file"][0] == hp.VMON_BAD and r["fresh"][0] == hp.VMON_NONE
     for name in ("fresh", "bad file"):
-        state, rows, acks, pulses, hard_i, hard_q = r[name]
-        assert acks == [hp.RES_OK] * 3
+        state, rows, acks, pulses, hard_i, hard_q, lim, info, gate = r[name]
+        # the soft limits are held to what the board may deliver, so a pulse above them is refused
+        # ahead (CALIBRATE, SET_LIMITS: out of range, nothing changed), never latched at the gate
+        assert acks == [hp.RES_OK, hp.RES_OUT_OF_RANGE, hp.RES_OUT_OF_RANGE, hp.RES_OK, hp.RES_OK] + [hp.RES_OK] * 3, (
+            name, acks)
         for hid, hqd, rep, phys in rows:
             assert hid == hard_i * hp.VMON_DAC_PPM_MIN // 1000000 and hqd == hard_q * hp.VMON_DAC_PPM_MIN // 1000000
             assert rep <= hid and phys <= hard_i, (name, rows)  # was 10350 uA at a gain of 1.035
-        for stop, di, phys in pulses:  # a pulse at the hard limit's current is stopped, never delivered
-            assert stop == hp.STOP_LIMIT and phys <= hard_i, (name, pulses)
-    state, rows, acks, pulses, hard_i, hard_q = r["ideal"]
+        assert lim[1] == rows[0][0] and lim[4] == min(row[1] for row in rows), (name, lim)
+        for stop, di, phys in pulses:  # at the held limit: delivered, within the hard limit
+            assert stop == hp.STOP_NONE and 0 < di <= lim[1] and phys <= hard_i, (name, pulses)
+        i = decode(bytes.fromhex(info))  # GET_INFO: the held limits, and why
+        assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (rows[0][0], rows[0][1], True), name
+        for stop, di, phys in gate:  # a pulse at the hard limit's current is stopped, never delivered
+            assert stop == hp.STOP_LIMIT and di == 0 and phys <= hard_i, (name, gate)
+    state, rows, acks, pulses, hard_i, hard_q, lim, info, gate = r["ideal"]
+    assert acks == [hp.RES_OK] * 8 and lim[1] == hard_i, (acks, lim)
     assert [row[0] for row in rows] == [hard_i, hard_i] and all(p[0] == hp.STOP_NONE and p[1] > 0 for p in pulses)
+    assert all(g[0] == hp.STOP_NONE and g[1] > 0 for g in gate)  # nothing is held on the ideal board
+    i = decode(bytes.fromhex(info))
+    assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (hard_i, hard_q, False)

@@ -23,7 +23,9 @@ US = 1000  # ns
 RUN = """
 s = stim.Stimulator(b, board_rp2.Clock(), cfg, {n}, 50)
 buf = bytearray(hp.REPORT_LEN)
-for rep in (hp.cmd_set_limits(bytearray(64), 100, cfg.HARD_I_MAX_UA, hp.T_FLOOR_US, s.lim[3], cfg.HARD_Q_MAX_PC),
+# wide soft limits: up to the current and charge the board holds (s.lim at boot: with no DAC gain
+# applied the hard limits x 0.965, stim._fit_limits), the shortest width
+for rep in (hp.cmd_set_limits(bytearray(64), 100, s.lim[1], hp.T_FLOOR_US, s.lim[3], s.lim[4]),
             hp.cmd_set_mode(buf, {mode}), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, {i0}, {t0}, -1670, 0),
             hp.cmd_arm(bytearray(64), hp.CH_ALL)):
     assert s.handle(rep, time.ticks_us()) == hp.RES_OK

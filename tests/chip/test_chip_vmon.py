@@ -98,19 +98,31 @@ def test_a_corrupt_file_boots_uncorrected_and_says_so(chip_host, cfg, content):
 
 
 def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_limit_low(chip_host, cfg):
-    """Review of d560dd3 (findings 4, 2c) on the rp2 board: a CH_ALL SET_VMON with a byte set in the
-    reserved 56..61 is refused (RES_BAD_FORMAT, the byte) and changes nothing; with no DAC gain
-    applied (a fresh board) a pulse at the hard current limit is stopped (STOP_LIMIT: the DAC's own
-    gain error could push it past), while a channel whose DAC gain was measured (1.0) pulses there."""
+    """Review of d560dd3 (findings 4, 2c) on the rp2 board, through main and USB HID: a CH_ALL SET_VMON
+    with a byte set in the reserved 56..61 is refused (RES_BAD_FORMAT, the byte) and changes nothing.
+    With a channel that has no DAC gain applied (a fresh board; here ch0) the hard current and charge
+    limits in force are held to x 0.965 (the DAC's own gain error could push a pulse past them): GET_INFO
+    reports them with INFO_FLAG_HELD, the boot soft limits are lowered to them, and a CALIBRATE or
+    SET_LIMITS above them is refused ahead (RES_OUT_OF_RANGE, the byte; was: accepted, then latched
+    STOP_LIMIT at the gate with no pulse and no reason given). Once every channel has a DAC gain (1.0)
+    GET_INFO reports the full limits, the soft ones stay where they were until SET_LIMITS raises them, and
+    both channels pulse at the full hard current. Removing a gain again (under the heap lock) lowers the
+    soft limits at once and drops the calibration above them."""
     cmd = Commands()
     chip = chip_host.boot(chip_host.image)
     junk = bytearray(hp.cmd_set_vmon_all(bytearray(64), hp.VMON_APPLY, [(1010000, 10, 0), (0, 0, 1000000)], tag=91))
     junk[56] = 0x5A
     hp.seal(junk)
-    i_ua, t_us = cfg.HARD_I_MAX_UA, 100
+    hard_i, hard_q = cfg.HARD_I_MAX_UA, cfg.HARD_Q_MAX_PC
+    held_i, held_q = hard_i * hp.VMON_DAC_PPM_MIN // 1000000, hard_q * hp.VMON_DAC_PPM_MIN // 1000000
+    t_us = 100
     sent = [cmd.get_info(), bytes(junk), cmd.get_info(0), cmd.get_info(1),
-            cmd.set_vmon(1, 0, 0, dac_gain_ppm=1000000), cmd.set_mode(sc.MODE_OPEN_LOOP),
-            cmd.calibrate(i_ua, t_us, 0, 0), cmd.arm()]
+            cmd.set_mode(sc.MODE_OPEN_LOOP),
+            cmd.calibrate(hard_i, t_us, 0, 0),  # refused ahead: above the held soft limit
+            cmd.set_limits(1, hard_i, t_us, 1000, hard_q),  # refused ahead: above the held hard limit
+            cmd.set_vmon(1, 0, 0, dac_gain_ppm=1000000), cmd.get_info(),  # ch0 still has none: still held
+            cmd.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)]), cmd.get_info(),  # every channel: the full limits
+            cmd.set_limits(1, hard_i, t_us, 1000, hard_q), cmd.calibrate(hard_i, t_us, 0, 0), cmd.arm()]
     chip.wiring(cfg, cfg.N_CHANNELS)
     for ch in range(cfg.N_CHANNELS):
         chip.load(ch, rp_ohm=1000)  # 10 V at the hard limit: well within compliance
@@ -118,11 +130,62 @@ def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_l
     with pytest.raises(ChipError, match="timeout"):
         chip.exec("import main", timeout_ms=800)
     reps = [decode(bytes.fromhex(x)) for _t, x in chip.hid()["reports"]]
-    acks = [(a.result, a.detail) for a in reps if isinstance(a, Ack) and a.command == hp.CMD_SET_VMON]
-    assert acks == [(hp.RES_BAD_FORMAT, 56), (hp.RES_OK, 0)]
+    acks = [(a.command, a.result, a.detail) for a in reps if isinstance(a, Ack)]
+    assert acks == [(hp.CMD_SET_VMON, hp.RES_BAD_FORMAT, 56), (hp.CMD_SET_MODE, hp.RES_OK, 0),
+                    (hp.CMD_CALIBRATE, hp.RES_OUT_OF_RANGE, hp.O_ARG),
+                    (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2),
+                    (hp.CMD_SET_VMON, hp.RES_OK, 0), (hp.CMD_SET_VMON, hp.RES_OK, 0),
+                    (hp.CMD_SET_LIMITS, hp.RES_OK, 0), (hp.CMD_CALIBRATE, hp.RES_OK, 0), (hp.CMD_ARM, hp.RES_OK, 0)]
     cal = [r for r in reps if isinstance(r, CalInfo)]
     assert [(c.vmon_gain_ppm, c.dac_gain_ppm) for c in cal] == [(0, 0), (0, 0)]  # the refused command changed nothing
+    info = [r for r in reps if isinstance(r, Info)]
+    soft = [(i.i_max_ua, i.q_max_pc) for i in info]
+    assert [(i.hard_i_max_ua, i.hard_q_max_pc, i.held) for i in info] == [
+        (held_i, held_q, True), (held_i, held_q, True), (hard_i, hard_q, False)]
+    assert soft == [(held_i, held_q)] * 3  # lowered at boot; a gain stored later does not raise them by itself
     tel = {ch: [t for t in reps if isinstance(t, Telemetry) and t.channel == ch] for ch in (0, 1)}
-    assert any(t.stop == hp.STOP_LIMIT for t in tel[0]) and not any(t.i_ua for t in tel[0]), tel[0][-3:]
-    pulsed = [t for t in tel[1] if t.i_ua]
-    assert len(pulsed) >= 3 and all(t.stop == hp.STOP_NONE and i_ua - 5 <= t.i_ua <= i_ua for t in pulsed)
+    for ch in (0, 1):
+        assert not any(t.stop == hp.STOP_LIMIT for t in tel[ch])
+        pulsed = [t for t in tel[ch] if t.i_ua]
+        assert len(pulsed) >= 3 and all(t.stop == hp.STOP_NONE and hard_i - 5 <= t.i_ua <= hard_i for t in pulsed)
+
+    # ch0's gain removed (SET_VMON under the heap lock): the soft limits follow it down at once, the
+    # calibration above them must be sent again (ARM refused), GET_INFO says held again
+    chip.hid(send=[cmd.disarm(), cmd.set_vmon(0, 0, 0), cmd.get_info(), cmd.arm()])
+    chip.run(200)
+    reps = [decode(bytes.fromhex(x)) for _t, x in chip.hid()["reports"]]
+    acks = [(a.command, a.result) for a in reps if isinstance(a, Ack)]
+    assert acks == [(hp.CMD_DISARM, hp.RES_OK), (hp.CMD_SET_VMON, hp.RES_OK), (hp.CMD_ARM, hp.RES_NOT_CALIBRATED)]
+    info = [r for r in reps if isinstance(r, Info)]
+    assert [(i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.i_max_ua, i.q_max_pc) for i in info] == [
+        (held_i, held_q, True, held_i, held_q)]
+    disarmed = next(a.seq for a in reps if isinstance(a, Ack) and a.command == hp.CMD_DISARM)
+    after = [t for t in reps if isinstance(t, Telemetry) and t.seq > disarmed]
+    assert after and not any(t.i_ua for t in after) and {t.stop for t in after} == {hp.STOP_DISARMED}
+
+
+def test_on_the_chip_the_gate_still_latches_a_pulse_above_the_held_limit(on_board, cfg):
+    """The check right before the gate opens stays the last line: with the soft limits forced past the
+    held ones (what _fit_limits prevents; here set behind its back), a pulse at the hard current limit on
+    a channel with no DAC gain applied is latched STOP_LIMIT and never fired."""
+    for ch in range(cfg.N_CHANNELS):
+        on_board.load(ch, rp_ohm=1000)
+    out = on_board.exec("""
+s = stim.Stimulator(b, board_rp2.Clock(), cfg, 2, 50)
+lim = s.lim
+held = [lim[1], lim[4]]
+lim[1] = s.hard_i
+lim[4] = s.hard_q
+for c in s.chans:
+    c.ctl.set_limits(lim[0], lim[1], lim[2], lim[3], lim[4])
+for rep in (hp.cmd_set_mode(bytearray(64), 0), hp.cmd_calibrate(bytearray(64), hp.CH_ALL, s.hard_i, 100, 0, 0),
+            hp.cmd_arm(bytearray(64), hp.CH_ALL)):
+    assert s.handle(rep, time.ticks_us()) == hp.RES_OK
+s.sync_outputs()
+s.run(3)
+print([held, [c.stop for c in s.chans], [c.armed for c in s.chans], [c.hard_i_d for c in s.chans]])""")
+    r = on_board.take()
+    held_i = cfg.HARD_I_MAX_UA * hp.VMON_DAC_PPM_MIN // 1000000
+    assert eval(out.strip().splitlines()[-1]) == [[held_i, cfg.HARD_Q_MAX_PC * hp.VMON_DAC_PPM_MIN // 1000000], [hp.STOP_LIMIT] * 2,
+                         [False, False], [held_i, held_i]]
+    assert r["pulses"] == [] and r["gate"] == [0, 0]

@@ -255,7 +255,9 @@ def test_a_boot_error_is_printed_logged_capped_and_leaves_outputs_off(tmp_path, 
     p = subprocess.run([micropython, str(tmp_path / "probe.py")], capture_output=True, text=True, env=env, timeout=60)
     assert p.returncode == 0, p.stderr
     text = log.read_text()
-    assert text.startswith("steadytouch 0.1.0 stopped at boot; every output is off")
+    from steadytouch.flash import fw_version
+
+    assert text.startswith(f"steadytouch {fw_version()} stopped at boot; every output is off")
     assert "OSError" in text and text in p.stdout
     assert len(text) <= 2048
     assert p.stdout.strip().endswith("['pause', 'pause', 'off']")

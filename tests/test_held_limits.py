@@ -1,0 +1,376 @@
+"""The held limits (issue 13, docs/safety.md "no DAC gain known"): while a channel of a board whose
+current is not exactly the commanded one has no DAC gain applied, the hard current and charge limits
+in force are the board's x VMON_DAC_PPM_MIN (0.965: 9650 uA of 10000). The soft limits never go above
+them (at boot and after every SET_VMON), SET_LIMITS refuses above them, GET_INFO reports them
+(O_HARD_I / O_HARD_Q, INFO_FLAG_HELD), and the host refuses ahead with the reason. Each test fails on
+the firmware before this (soft i_max 10000 on such a board: a pulse above 9650 latched STOP_LIMIT at the
+gate, with no warning and no reason given to the host)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import hid_protocol as hp
+import sensation_core as sc
+from steadytouch.protocol import Info, Telemetry, decode
+
+from conftest import ROOT
+from fw_harness import run_fw
+
+EXE = str(Path(sys.executable).parent / "steadytouch")
+HARD_I, HARD_Q = 10000, 10_000_000  # board_config's nominal hard limits (checked below against the device)
+HELD_I, HELD_Q = HARD_I * hp.VMON_DAC_PPM_MIN // 1000000, HARD_Q * hp.VMON_DAC_PPM_MIN // 1000000
+
+SETUP = """
+def board(ideal=False, flash=None, n=2):
+    clock = VirtualClock(0)
+    bd = SimBoard(cfg, clock, sim_electrode.scenario("steady"), n, 1, MemoryUSB(True), ideal=ideal,
+                  flash_dir=flash, load_ohm=1000)
+    return stim.Stimulator(bd, clock, cfg, n, 50, 0), bd, clock
+
+def framed(s, rep):
+    # one report handled inside a real frame (heap-locked, as on the device); its answer
+    usb = s.board.usb
+    usb.sent.clear()
+    usb.inbox.append(bytes(rep))
+    s.run(1)
+    ans = [r for r in usb.sent if r[0] != hp.REP_TELEMETRY]
+    usb.sent.clear()
+    assert len(ans) == 1 and s.errors == 0, (len(ans), s.errors, s.last_error)
+    return bytes(ans[0]).hex()
+
+def limits(s):
+    # the soft limits, every controller's, every channel's calibration flag and held hard limits
+    return [list(s.lim), [[c.ctl.i_min_ua, c.ctl.i_max_ua, c.ctl.t_min_us, c.ctl.t_max_us, c.ctl.q_max_pc]
+                          for c in s.chans], [c.have_cal for c in s.chans], [[c.hard_i_d, c.hard_q_d] for c in s.chans]]
+"""
+
+
+def _info(hexrep) -> Info:
+    i = decode(bytes.fromhex(hexrep))
+    assert isinstance(i, Info)
+    return i
+
+
+def _ack(hexrep):
+    a = decode(bytes.fromhex(hexrep))
+    return a.command, a.result, a.detail
+
+
+def test_boot_without_a_dac_gain_holds_the_soft_limits_and_get_info_reports_the_held_limits(tmp_path):
+    """Boot: a fresh realistic board, one whose file has a DAC gain on one channel only, and the ideal board
+    (its current exactly the commanded one) and a realistic one whose file has a gain on every channel."""
+    one, every = tmp_path / "one", tmp_path / "every"
+    one.mkdir()
+    every.mkdir()
+    (one / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 1000000\n")
+    (every / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 1000000\n1 0 0 1006000\n")
+    _, res, _ = run_fw(SETUP + f"""
+out = {{}}
+for name, ideal, flash in (("fresh", False, None), ("one gain", False, {str(one)!r}), ("ideal", True, None),
+                           ("every gain", False, {str(every)!r})):
+    s, bd, clock = board(ideal, flash)
+    out[name] = [limits(s), framed(s, hp.cmd_get_info(bytearray(64), 5)), s.hard_i, s.hard_q, s.vmon_state]
+result(**out)
+""")
+    r = res[0]
+    for name in ("fresh", "one gain", "ideal", "every gain"):
+        assert r[name][2:4] == [HARD_I, HARD_Q], name  # the board's nominal limits (board_config)
+    for name, held in (("fresh", True), ("one gain", True), ("ideal", False), ("every gain", False)):
+        (lim, ctl, _cal, hard_d), info_hex, _, _, _ = r[name]
+        i = _info(info_hex)
+        want_i, want_q = (HELD_I, HELD_Q) if held else (HARD_I, HARD_Q)
+        assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (want_i, want_q, held), name
+        assert i.hard_t_max_us == 8000  # the width limit is not held
+        assert (lim[1], lim[4]) == (want_i, want_q) == (i.i_max_ua, i.q_max_pc), (name, lim)  # boot soft = held
+        assert all(c[1] == want_i and c[4] == want_q for c in ctl), (name, ctl)  # every controller has them
+        assert min(h[0] for h in hard_d) == want_i
+    assert _info(r["ideal"][1]).dac_gain_applied is False and _info(r["fresh"][1]).dac_gain_applied is True
+    assert r["one gain"][4] == r["every gain"][4] == hp.VMON_LOADED
+
+
+def test_set_limits_above_the_held_limit_is_refused_and_changes_nothing():
+    _, res, _ = run_fw(SETUP + """
+s, bd, clock = board()
+b = bytearray(64)
+pre = [framed(s, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)), framed(s, hp.cmd_calibrate(b, hp.CH_ALL, 3000, 1000, -1670, 0))]
+before = limits(s)
+held_i, held_q = s.lim[1], s.lim[4]
+refused = [framed(s, hp.cmd_set_limits(b, 100, held_i + 1, 50, 4000, held_q)),
+           framed(s, hp.cmd_set_limits(b, 100, s.hard_i, 50, 4000, held_q)),
+           framed(s, hp.cmd_set_limits(b, 100, held_i, 50, 4000, held_q + 1)),
+           framed(s, hp.cmd_set_limits(b, 100, held_i, 50, 4000, s.hard_q)),
+           framed(s, hp.cmd_calibrate(b, hp.CH_ALL, held_i + 1, 100, -1670, 0))]
+after = limits(s)
+ok = framed(s, hp.cmd_set_limits(b, 100, held_i, 50, 4000, held_q))  # at the held limits: accepted
+result(pre=pre, before=before, after=after, refused=refused, ok=ok, at=limits(s), held=[held_i, held_q])
+""")
+    r = res[0]
+    assert r["held"] == [HELD_I, HELD_Q]
+    assert [_ack(a)[1] for a in r["pre"]] == [hp.RES_OK, hp.RES_OK]
+    assert [_ack(a) for a in r["refused"]] == [
+        (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2), (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2),
+        (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8), (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8),
+        (hp.CMD_CALIBRATE, hp.RES_OUT_OF_RANGE, hp.O_ARG)]
+    assert r["after"] == r["before"]  # nothing changed: soft limits, controllers, calibrations
+    assert r["before"][2] == [True, True]
+    assert _ack(r["ok"]) == (hp.CMD_SET_LIMITS, hp.RES_OK, 0)
+    assert r["at"][0] == [100, HELD_I, 50, 4000, HELD_Q] and r["at"][2] == [True, True]
+
+
+def test_a_stored_dac_gain_lets_set_limits_reach_the_full_hard_limit_and_a_removed_one_lowers_them(tmp_path):
+    """A DAC gain stored on every channel (VMON_STORE, heap-locked) lifts the hold: GET_INFO reports the full
+    limits, the soft ones stay where they were until SET_LIMITS raises them (up to the full limit, accepted),
+    a pulse at the full hard current is delivered; the next boot starts at the full limits. A gain removed
+    again (VMON_APPLY, heap-locked) lowers the soft limits at once, every controller's with them, and drops
+    only the calibrations above them."""
+    d = str(tmp_path)
+    _, res, _ = run_fw(SETUP + f"""
+s, bd, clock = board(flash={d!r}, n=3)
+b = bytearray(64)
+r = {{}}
+r["store"] = framed(s, hp.cmd_set_vmon_all(b, hp.VMON_STORE, [(0, 0, 1000000)] * 3))
+r["stored"] = limits(s)
+r["info"] = framed(s, hp.cmd_get_info(b))
+r["acks"] = [framed(s, hp.cmd_set_limits(b, 100, s.hard_i, 50, 4000, s.hard_q)),
+             framed(s, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+             framed(s, hp.cmd_calibrate(b, 0, s.hard_i, 1000, -1670, 0)),
+             framed(s, hp.cmd_calibrate(b, 1, 3000, 1000, -1670, 0)),
+             framed(s, hp.cmd_calibrate(b, 2, 3000, 1000, -1670, 0)),
+             framed(s, hp.cmd_arm(b, hp.CH_ALL))]
+s.run(4)
+r["pulses"] = [[c.stop, c.di, bd.last_i_ua[c.ch]] for c in s.chans]
+r["acks"].append(framed(s, hp.cmd_disarm(b, hp.CH_ALL)))
+r["raised"] = limits(s)
+r["removed"] = framed(s, hp.cmd_set_vmon(b, 2, hp.VMON_APPLY, 0, 0))
+r["lowered"] = limits(s)
+r["info2"] = framed(s, hp.cmd_get_info(b))
+r["arm"] = [framed(s, hp.cmd_arm(b, 0)), framed(s, hp.cmd_arm(b, 1)), framed(s, hp.cmd_arm(b, 2))]
+s2, bd2, _ = board(flash={d!r}, n=3)  # the next boot, from the stored file
+r["boot"] = limits(s2)
+result(**r)
+""")
+    r = res[0]
+    assert _ack(r["store"]) == (hp.CMD_SET_VMON, hp.RES_OK, 0)
+    assert r["stored"][0][1] == HELD_I and r["stored"][0][4] == HELD_Q  # not raised by the store itself
+    assert [h for h in r["stored"][3]] == [[HARD_I, HARD_Q]] * 3  # the hold is lifted on every channel
+    i = _info(r["info"])
+    assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.i_max_ua) == (HARD_I, HARD_Q, False, HELD_I)
+    assert [_ack(a)[1] for a in r["acks"]] == [hp.RES_OK] * 7
+    assert r["raised"][0] == [100, HARD_I, 50, 4000, HARD_Q]
+    for stop, di, phys in r["pulses"]:
+        assert stop == hp.STOP_NONE and 0 < di <= HARD_I, r["pulses"]
+    assert HARD_I - 5 <= r["pulses"][0][1]  # ch0 at the full hard current (the DAC rounds down)
+    # ch2's gain removed: the soft limits follow its held limit down, ch0's calibration at 10000 uA is dropped,
+    # ch1's at 3000 uA kept (ch2's is dropped by its gain change itself: the same code is another current)
+    assert _ack(r["removed"]) == (hp.CMD_SET_VMON, hp.RES_OK, 0)
+    lim, ctl, cal, hard_d = r["lowered"]
+    assert lim == [100, HELD_I, 50, 4000, HELD_Q] and all(c == lim for c in ctl)
+    assert hard_d == [[HARD_I, HARD_Q], [HARD_I, HARD_Q], [HELD_I, HELD_Q]]
+    assert cal == [False, True, False]
+    i = _info(r["info2"])
+    assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.i_max_ua, i.q_max_pc) == (HELD_I, HELD_Q, True, HELD_I, HELD_Q)
+    assert [_ack(a)[1] for a in r["arm"]] == [hp.RES_NOT_CALIBRATED, hp.RES_OK, hp.RES_NOT_CALIBRATED]
+    assert r["boot"][0][1] == HARD_I and r["boot"][0][4] == HARD_Q  # boots with every gain applied: the full limits
+
+
+def run_cli(*args, env=None):
+    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=240, cwd=ROOT, env=env)
+
+
+def test_a_closed_loop_on_the_realistic_sim_that_wants_more_is_clamped_not_latched(tmp_path):
+    """`steadytouch sim` on the realistic board (no DAC gain): the gel step drops Rp and the Akhtar law asks
+    for more than the held 9650 uA; the core clamps it there (bound) and the channel keeps stimulating (was:
+    latched STOP_LIMIT at the gate at the first such pulse). The recording's header carries the limits the
+    device ran with, so `audit` replays it bit-exact."""
+    p = run_cli("sim", "gel-step", "--mode", "akhtar", "--i0-ua", "8000", "--t0-us", "300", "--x-star-ohm", "-1670",
+                "--y-star-pc", "0", "--no-plot", "--out", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    from steadytouch.record import read_recording
+
+    meta, rows = read_recording(tmp_path / "gel-step-akhtar.csv")
+    assert int(meta["i_max_ua"]) == HELD_I and int(meta["q_max_pc"]) == HELD_Q
+    pulses = [r for r in rows if r["i_ua"]]
+    assert len(pulses) >= 250 and all(r["stop"] == hp.STOP_NONE for r in rows)
+    bound = [r for r in pulses if r["status"] & sc.ST_BOUND_MASK]
+    assert bound and max(r["next_i_ua"] for r in pulses) == HELD_I  # the law wanted more: clamped at the held limit
+    assert HELD_I - 3 <= max(r["i_ua"] for r in pulses) <= HELD_I  # delivered there (the DAC rounds down)
+    a = run_cli("audit", str(tmp_path / "gel-step-akhtar.csv"))
+    assert a.returncode == 0 and "bit-exact" in a.stdout, a.stdout + a.stderr
+
+
+def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason(tmp_path):
+    url = "sim://steady?channels=2"
+    p = run_cli("info", "--device", url)
+    assert p.returncode == 0, p.stderr
+    assert f"hard limits: I <= {HELD_I} uA, T <= 8000 us, Q <= {HELD_Q} pC" in p.stdout and "(held)" in p.stdout
+    assert "no DAC gain was measured" in p.stdout and "selftest --load-ohm OHMS --scope" in p.stdout
+    for args, words in (
+            (["limits", "--i-min-ua", "500", "--i-max-ua", "9800", "--t-min-us", "100", "--t-max-us", "4000",
+              "--q-max-pc", "5000000"], f"i_max_ua=9800 out of range: the device accepts 1..{HELD_I} uA"),
+            (["limits", "--i-min-ua", "500", "--i-max-ua", "5000", "--t-min-us", "100", "--t-max-us", "4000",
+              "--q-max-pc", str(HARD_Q)], f"q_max_pc={HARD_Q} out of range: the device accepts up to {HELD_Q} pC"),
+            (["calibrate", "--i0-ua", "9800", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0"],
+             f"i0_ua=9800 out of range: the device's soft limits are 500..{HELD_I} uA"),
+            (["calibrate", "--interactive", "--participant", "sim", "--strong-ua", "9800"],
+             f"--strong-ua 9800 out of range: the device accepts at most {HELD_I} uA at 200 us")):
+        p = run_cli(*args, "--device", url)
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(err) == 1 and words in err[0], (args, p.stderr)
+        assert "no DAC gain was measured" in err[0] and "steadytouch selftest" in err[0] and "--scope" in err[0]
+        assert "Traceback" not in p.stderr
+    # `steadytouch sim` on the realistic board: checked against the simulated board's soft limits first
+    p = run_cli("sim", "steady", "--i0-ua", "9800", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0",
+                "--no-plot", "--out", str(tmp_path))
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1, p.stderr
+    assert err[0].startswith(f"steadytouch: --i0-ua=9800 out of range: the device's soft limits are 500..{HELD_I} uA")
+    assert "no DAC gain was measured" in err[0] and "--scope" in err[0] and not list(tmp_path.iterdir())
+    # the ideal board (its current exactly the commanded one) is not held: 9800 is accepted there
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", "9800", "--t-min-us", "100", "--t-max-us", "4000",
+                "--q-max-pc", "5000000", "--device", url + "&board=ideal")
+    assert p.returncode == 0 and "limits: ok" in p.stdout, p.stderr
+
+
+def test_the_host_forgets_the_hard_limits_after_a_set_vmon():
+    """Device.limits reads GET_INFO when it does not know the hard limits in force, and again after a SET_VMON
+    (which may lift or bring back the hold): a gain applied on every channel of the realistic sim:// lets
+    SET_LIMITS reach the full hard limit from the host."""
+    from steadytouch.device import Device
+    from steadytouch.protocol import CommandError
+    from steadytouch.transport import open_transport
+
+    import pytest
+
+    with open_transport("sim://steady?channels=2") as t:
+        d = Device(t)
+        with pytest.raises(CommandError, match=f"i_max_ua={HARD_I} out of range: the device accepts 1..{HELD_I} uA"):
+            d.limits(500, HARD_I, 100, 4000, 5_000_000)
+        d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])
+        assert d.cmds.hard is None
+        assert d.limits(500, HARD_I, 100, 4000, HARD_Q).ok
+        i = d.info()
+        assert (i.hard_i_max_ua, i.held, i.i_max_ua, i.q_max_pc) == (HARD_I, False, HARD_I, HARD_Q)
+
+
+def test_a_refusal_names_the_value_and_the_range_and_the_hold_only_when_it_is_the_cause(tmp_path):
+    """`steadytouch sim` and the firmware's own --auto: 300 uA is below i_min (500): the hold is not the cause and
+    is not named (was: "(held: ...)" on every refusal, with "command 0x12 with result 4 (detail byte 4)" and a
+    doubled "steadytouch: steadytouch firmware:" prefix); 9800 uA is above the held 9650 and within the board's
+    10000: the hold is named; 20000 is above the board's own: not the hold."""
+    for i0, t0, words, held in ((300, 1000, "--i0-ua=300 out of range: the device's soft limits are 500..9650 uA", False),
+                                (5000, 2000, "--i0-ua*--t0-us=10000000 pC out of range: the device's charge limit is "
+                                             "9650000 pC", True)):
+        p = run_cli("sim", "steady", "--i0-ua", str(i0), "--t0-us", str(t0), "--no-plot", "--out", str(tmp_path))
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(err) == 1 and err[0].startswith(f"steadytouch: {words}"), p.stderr
+        assert ("no DAC gain was measured" in err[0]) == held and "steadytouch firmware" not in err[0], err
+        assert not list(tmp_path.iterdir())
+    import os
+
+    from steadytouch.simrun import FIRMWARE, SHARED, micropython_exe
+
+    env = dict(os.environ, MICROPYPATH=os.pathsep.join([str(SHARED), str(FIRMWARE)]))
+    for i0, words, held in ((300, "I0 300 uA out of range: the device accepts 500..9650 uA", False),
+                            (9800, "I0 9800 uA out of range: the device accepts 500..9650 uA", True),
+                            (20000, "I0 20000 uA out of range: the device accepts 500..9650 uA", False)):
+        p = subprocess.run([micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", "steady", "--frames", "5",
+                            "--auto", f"{i0},300,-1670,0", "--flash-dir", str(tmp_path)], capture_output=True,
+                           text=True, errors="replace", timeout=60, env=env)
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and err == [err[0]] and err[0].startswith(f"steadytouch firmware: --auto: {words}"), err
+        assert ("held at 9650 uA, 9650000 pC: no DAC gain was measured" in err[0]) == held, err
+        assert "0x12" not in err[0]
+
+
+def test_a_dac_gain_below_1_lowers_the_limits_only_where_it_is_applied_and_the_host_says_why(tmp_path):
+    """A stored DAC gain of 0.98 on ch0: the ideal board (its current exactly the commanded one; the gain is
+    stored, not applied) keeps the full limits (was: 9800 uA / 9.8 uC, against the docs and `info`'s "stored,
+    not applied"); the realistic board applies it, its hard limits are x 0.98, and `info` and the `limits`
+    refusal say that reason (GET_INFO's INFO_FLAG_DAC_LOW), not the hold."""
+    import os
+
+    (tmp_path / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 980000\n1 0 0 1000000\n")
+    env = dict(os.environ, STEADYTOUCH_SIM_FLASH=str(tmp_path))
+    url = "sim://steady?channels=2"
+    p = run_cli("info", "--device", url + "&board=ideal", env=env)
+    assert p.returncode == 0 and f"hard limits: I <= {HARD_I} uA, T <= 8000 us, Q <= {HARD_Q} pC" in p.stdout, p.stdout
+    assert f"soft limits: I 500-{HARD_I} uA" in p.stdout and "(held)" not in p.stdout and "lowered" not in p.stdout
+    assert "DAC gain 0.9800 stored, not applied" in p.stdout
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", str(HARD_I), "--t-min-us", "100", "--t-max-us", "4000",
+                "--q-max-pc", str(HARD_Q), "--device", url + "&board=ideal", env=env)
+    assert p.returncode == 0 and "limits: ok" in p.stdout, p.stderr
+    p = run_cli("info", "--device", url, env=env)
+    assert p.returncode == 0 and "hard limits: I <= 9800 uA, T <= 8000 us, Q <= 9800000 pC" in p.stdout, p.stdout
+    assert "(lowered)" in p.stdout and "lowered: the board's own limits x the DAC gain below 1 measured (ch0 0.9800)" \
+        in p.stdout and "held" not in p.stdout, p.stdout
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", "9900", "--t-min-us", "100", "--t-max-us", "4000",
+                "--q-max-pc", "5000000", "--device", url, env=env)
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1, p.stderr
+    assert ("i_max_ua=9900 out of range: the device accepts 1..9800 uA: its hard limits are the board's own x the DAC "
+            "gain below 1") in err[0] and "no DAC gain" not in err[0], err
+
+
+def test_a_limits_refused_by_the_host_sends_nothing_and_changes_nothing():
+    """On one open transport (every sim:// CLI call boots a new VM, so a check across two calls says nothing):
+    SET_LIMITS above the held limit is refused by the host, no report is written, and the device's soft limits
+    are as they were."""
+    import pytest
+    from steadytouch.device import Device
+    from steadytouch.protocol import CommandError
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady?channels=2") as t:
+        d = Device(t)
+        before = d.info()
+        sent = []
+        write = t.write
+        t.write = lambda rep: (sent.append(bytes(rep)), write(rep))[1]
+        for v in ((500, 9800, 100, 4000, 5_000_000), (500, 5000, 100, 4000, HELD_Q + 1)):
+            with pytest.raises(CommandError, match="no DAC gain was measured"):
+                d.limits(*v)
+        assert sent == []
+        after = d.info()
+        assert [r[0] for r in sent] == [hp.CMD_GET_INFO]
+    soft = lambda i: (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc)  # noqa: E731
+    assert soft(after) == soft(before) == (500, HELD_I, before.t_min_us, before.t_max_us, HELD_Q)
+
+
+def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an_older_one():
+    """GET_INFO's hard fields and SET_LIMITS's rule changed: the minor version is 0.2.0; the host tells an older
+    board (nominal hard fields, no flag) from it and `info` says to update it."""
+    import dataclasses
+
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady?channels=1") as t:
+        i = Device(t).info()
+    assert i.firmware == "0.2.0" and i.reports_held_limits and i.held
+    old = dataclasses.replace(i, firmware="0.1.0", flags=i.flags & ~hp.INFO_FLAG_HELD)
+    assert not old.reports_held_limits and not dataclasses.replace(i, firmware="0.1.9").reports_held_limits
+    assert dataclasses.replace(i, firmware="1.0.0").reports_held_limits
+
+
+def test_the_advice_to_measure_the_dac_gain_only_for_a_board_that_takes_one():
+    """Held on a board whose DAC path applies no DAC gain (GET_INFO without INFO_FLAG_DAC_GAIN): `selftest --scope`
+    would not lift it, so the reason says the hold stays instead of advising it."""
+    import dataclasses
+
+    from steadytouch.device import Device
+    from steadytouch.protocol import Commands, CommandError
+    from steadytouch.transport import open_transport
+
+    import pytest
+
+    with open_transport("sim://steady?channels=1") as t:
+        i = Device(t).info()
+    assert i.held and i.dac_gain_applied and "--scope" in i.lowered_reason()
+    no_dac = dataclasses.replace(i, flags=i.flags & ~hp.INFO_FLAG_DAC_GAIN)
+    assert no_dac.held and "--scope" not in no_dac.lowered_reason() and "the hold stays" in no_dac.lowered_reason()
+    c = Commands()
+    c.know(no_dac)
+    with pytest.raises(CommandError) as e:
+        c.set_limits(500, HELD_I + 1, 100, 4000, 5_000_000)
+    assert "the hold stays" in str(e.value) and "selftest" not in str(e.value)
