@@ -664,27 +664,20 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
 
 @micropython.viper
 def _pulse(vv, base: int, i: int, t: int, rp: int):
-    """A pulse into vv at base (_V_NOW, _V_BEFORE, _V_PROBE): log2 I, log2 T, Rp and log2 Rp
-    (fixmath.log2q, inline). _V_NOW, the pulse a jump starts from, also sets log2 Q and
-    the jump's work to 0."""
+    """A pulse into vv at base (_V_BEFORE: the pulse before a jump when it is not the last
+    jump's pulse): log2 I, log2 T, Rp and log2 Rp (fixmath.log2q, inline). (SkinModel.jump
+    computes the pulse just measured's words itself, with log2 Q: no call.)"""
     v = ptr32(vv)
     g2 = ptr32(_LOG_TAB)
     v[base + _P_RP] = rp
-    last = 3
-    if base == _V_NOW:
-        v[_V_WORK] = 0
-        v[_V_CUT] = 0
-        last = 4
     j = 0
-    while j < last:
+    while j < 3:
         if j == 0:
             n = i
         elif j == 1:
             n = t
-        elif j == 2:
-            n = rp
         else:
-            n = i * t
+            n = rp
         if n < 1:
             n = 1
         k = 22
@@ -724,10 +717,8 @@ def _pulse(vv, base: int, i: int, t: int, rp: int):
             v[base + _P_LI] = n
         elif j == 1:
             v[base + _P_LT] = n
-        elif j == 2:
-            v[base + _P_RLP] = n
         else:
-            v[_V_LQK] = n
+            v[base + _P_RLP] = n
         j += 1
 
 
@@ -913,7 +904,7 @@ class SkinModel:
         step: never the larger hydration answer nor a search's unfinished value).
         A fresh rise into the duration ceiling that the model predicts to raise Rp by more
         than 1/8 is halved (docs/controller.md, rule 6).
-        q_k is i_k * t_k (its log2 comes with the pulse: _pulse); from_q is the core's Eq. 4
+        q_k is i_k * t_k (its log2 is computed with the pulse's words, below); from_q is the core's Eq. 4
         with the bounds (sensation_core._from_q). (viper: the model's state from self.v;
         self.ls, .lc, .jumped, .predicted_rp_ohm are its words.)"""
         vv = self.v
@@ -922,7 +913,7 @@ class SkinModel:
         p0rp = pk[_KB_RP]
         bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
         if p0rp > 0:
-            if v[_V_NI] == pk[_KB_I] and v[_V_NT] == pk[_KB_T] and v[_V_NOW + _P_RP] == p0rp and p0rp > 0:
+            if v[_V_NI] == pk[_KB_I] and v[_V_NT] == pk[_KB_T] and v[_V_NOW + _P_RP] == p0rp:
                 v[_V_BEFORE + _P_LI] = v[_V_NOW + _P_LI]  # the words _pulse would compute
                 v[_V_BEFORE + _P_LT] = v[_V_NOW + _P_LT]
                 v[_V_BEFORE + _P_RP] = p0rp
@@ -933,7 +924,7 @@ class SkinModel:
         bls = v[_V_ACH_LS]
         blc = v[_V_ACH_LC]
         bw = v[_V_ACH_W]
-        # the pulse just measured: as _pulse(vv, _V_NOW, i_k, t_k, rp_ohm), inline (a call is ~16 us on the chip)
+        # the pulse just measured: its words as _pulse computes them, and log2 Q, inline (a call is ~9 us on the chip)
         v[_V_NOW + _P_RP] = rp_ohm
         v[_V_WORK] = 0
         v[_V_CUT] = 0
