@@ -752,7 +752,7 @@ def _law_q(vv, lq_k: int) -> int:
             # in [xa, xa + fb]: searched there first, the whole range if it is not there
             xa = lq_t - ltmax
             x = NOROOT
-            if fb > 16 and xa + fb < hi and lo < xa + fb:  # (fb > 16: well above the rounding of g)
+            if fb > 32 and xa + fb < hi and lo < xa + fb:  # (fb > 32: g(xa) is fb to 23/2**16, the pulse's rounding)
                 if xa >= lo:
                     v[_V_FB] = fb + _V_BIAS
                     x = int(_root(vv, _K_CEIL + _FA_KNOWN, xa, xa + fb, 0))
