@@ -153,7 +153,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     ob = (kind >> 16) & 0xFF
     fbk = (kind >> 24) & 1  # _FB_KNOWN
     fak = (kind >> 25) & 1  # _FA_KNOWN
-    if (kind >> 26) & 1:  # _RAW_IT: log2 of pulse p's I and T in place (fixmath.log2q, inline; as _pulse)
+    if (kind >> 26) & 1:  # _RAW_IT: log2 of pulse p's I and T in place (fixmath.log2q, inline; as SkinModel.jump's)
         j = 0
         while j < 2:
             n = v[pb + j]  # (_P_LI, _P_LT)
@@ -663,66 +663,6 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
 
 
 @micropython.viper
-def _pulse(vv, base: int, i: int, t: int, rp: int):
-    """A pulse into vv at base (_V_BEFORE: the pulse before a jump when it is not the last
-    jump's pulse): log2 I, log2 T, Rp and log2 Rp (fixmath.log2q, inline). (SkinModel.jump
-    computes the pulse just measured's words itself, with log2 Q: no call.)"""
-    v = ptr32(vv)
-    g2 = ptr32(_LOG_TAB)
-    v[base + _P_RP] = rp
-    j = 0
-    while j < 3:
-        if j == 0:
-            n = i
-        elif j == 1:
-            n = t
-        else:
-            n = rp
-        if n < 1:
-            n = 1
-        k = 22
-        if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
-            if n >= 0x4000000:
-                n >>= 4
-                k += 4
-            if n >= 0x1000000:
-                n >>= 2
-                k += 2
-            if n >= 0x800000:
-                n >>= 1
-                k += 1
-        else:
-            if n < 0x80:
-                n <<= 16
-                k -= 16
-            if n < 0x8000:
-                n <<= 8
-                k -= 8
-            if n < 0x80000:
-                n <<= 4
-                k -= 4
-            if n < 0x200000:
-                n <<= 2
-                k -= 2
-            if n < 0x400000:
-                n <<= 1
-                k -= 1
-        eu = (n >> 16) - 64
-        ea = g2[eu]
-        eb = g2[eu + 1]
-        m = n & 0xFFFF
-        w = m >> 8
-        n = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-        if j == 0:
-            v[base + _P_LI] = n
-        elif j == 1:
-            v[base + _P_LT] = n
-        else:
-            v[base + _P_RLP] = n
-        j += 1
-
-
-@micropython.viper
 def _law_q(vv, lq_k: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
@@ -912,30 +852,37 @@ class SkinModel:
         pk = ptr32(prev)
         p0rp = pk[_KB_RP]
         bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
+        j = 3  # the log2 words to compute (below): from j = 0 the pulse before's too
         if p0rp > 0:
+            v[_V_BEFORE + _P_RP] = p0rp
             if v[_V_NI] == pk[_KB_I] and v[_V_NT] == pk[_KB_T] and v[_V_NOW + _P_RP] == p0rp:
-                v[_V_BEFORE + _P_LI] = v[_V_NOW + _P_LI]  # the words _pulse would compute
+                v[_V_BEFORE + _P_LI] = v[_V_NOW + _P_LI]  # its words: the last jump's pulse's
                 v[_V_BEFORE + _P_LT] = v[_V_NOW + _P_LT]
-                v[_V_BEFORE + _P_RP] = p0rp
                 v[_V_BEFORE + _P_RLP] = v[_V_NOW + _P_RLP]
                 bhit = v[_V_ACH_OK]
             else:
-                _pulse(vv, _V_BEFORE, pk[_KB_I], pk[_KB_T], p0rp)
+                j = 0
         bls = v[_V_ACH_LS]
         blc = v[_V_ACH_LC]
         bw = v[_V_ACH_W]
-        # the pulse just measured: its words as _pulse computes them, and log2 Q, inline (a call is ~9 us on the chip)
+        # log2 I, T, Rp of the pulse before (j 0-2, when computed) and of the pulse just measured
+        # (j 3-5), and log2 Q of the latter (j 6): fixmath.log2q inline (a call is ~9 us on the chip)
         v[_V_NOW + _P_RP] = rp_ohm
         v[_V_WORK] = 0
         v[_V_CUT] = 0
         g2 = ptr32(_LOG_TAB)
-        j = 0
-        while j < 4:
+        while j < 7:
             if j == 0:
-                n = i_k
+                n = pk[_KB_I]
             elif j == 1:
-                n = t_k
+                n = pk[_KB_T]
             elif j == 2:
+                n = p0rp
+            elif j == 3:
+                n = i_k
+            elif j == 4:
+                n = t_k
+            elif j == 5:
                 n = rp_ohm
             else:
                 n = i_k * t_k
@@ -975,10 +922,16 @@ class SkinModel:
             w = m >> 8
             n = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
             if j == 0:
-                v[_V_NOW + _P_LI] = n
+                v[_V_BEFORE + _P_LI] = n
             elif j == 1:
-                v[_V_NOW + _P_LT] = n
+                v[_V_BEFORE + _P_LT] = n
             elif j == 2:
+                v[_V_BEFORE + _P_RLP] = n
+            elif j == 3:
+                v[_V_NOW + _P_LI] = n
+            elif j == 4:
+                v[_V_NOW + _P_LT] = n
+            elif j == 5:
                 v[_V_NOW + _P_RLP] = n
             else:
                 v[_V_LQK] = n
