@@ -18,6 +18,11 @@ import sim_electrode
 
 MAGIC0 = 0xA5  # stdio framing: MAGIC0 MAGIC1 then a 64-byte report
 MAGIC1 = 0x5A
+# ... MAGIC0 MAGIC_SIM then 64 bytes: on stdin, a message to the simulated world, not a
+# report (a real board never sees one); its byte 0 says what. SIM_START: the scenario's
+# clock starts now (SimBoard.hold: the host's session began; host/transport.py's begin()).
+MAGIC_SIM = 0x5B
+SIM_START = 1
 ADC_MAX = 4095
 
 # ---- the realistic board's analog errors (docs/simulation.md, "The realistic board") ----
@@ -179,6 +184,7 @@ class StdioUSB:
         self.pending = bytearray()
         self.eof = False
         self.n_sent = 0
+        self.on_sim = None  # called with byte 0 of each message to the simulated world (SimBoard.sim)
 
     def send(self, buf):
         self.out.write(self.hdr)
@@ -197,11 +203,17 @@ class StdioUSB:
             self.pending.extend(chunk)
             if len(self.pending) >= 66:
                 break
-        # resynchronise on the magic bytes
-        while len(self.pending) >= 2 and not (self.pending[0] == MAGIC0 and self.pending[1] == MAGIC1):
+        # resynchronise on the magic bytes (a report's, or a message's to the simulated world)
+        while len(self.pending) >= 2 and not (self.pending[0] == MAGIC0 and self.pending[1] in (MAGIC1, MAGIC_SIM)):
             self.pending = self.pending[1:]
         if len(self.pending) < 66:
             return False
+        if self.pending[1] == MAGIC_SIM:  # not for the firmware: the simulated world's, then the next report
+            code = self.pending[2]
+            self.pending = self.pending[66:]
+            if self.on_sim is not None:
+                self.on_sim(code)
+            return self.recv(buf)
         for k in range(64):
             buf[k] = self.pending[2 + k]
         self.pending = self.pending[66:]
@@ -263,6 +275,7 @@ class SimBoard:
         self.watchdog_feeds = 0
         self.t_s = 0.0  # scenario time
         self._last = clock.ticks_us()
+        self.held = False  # True: the scenario waits at its time 0 until start_scenario() (main.py --hold)
         self.glitch = [0.0] * n_channels  # next pulse's measurement x this factor (0: none)
         self.spike = [0] * n_channels  # next pulse: one ADC sample at full scale
         self.compliance_mv = cfg.COMPLIANCE_MV
@@ -280,11 +293,24 @@ class SimBoard:
                     self.vmon_cal[k] = correction[k]
 
     # -------------------------------------------------- the scenario's clock
+    def start_scenario(self):
+        """The scenario's clock starts now (it was held at time 0); once held no more, nothing."""
+        if self.held:
+            self.held = False
+            self._last = self.clock.ticks_us()
+
+    def sim(self, code):
+        """A message to the simulated world (StdioUSB.on_sim): SIM_START starts the scenario."""
+        if code == SIM_START:
+            self.start_scenario()
+
     def _advance_scenario(self):
         now = self.clock.ticks_us()
         dt = self.clock.ticks_diff(now, self._last)
         self._last = now
-        if dt <= 0:
+        if self.held:
+            dt = 0  # the world stays at the scenario's time 0 (its state there, no time passes)
+        elif dt <= 0:
             return
         dt_s = dt / 1e6
         self.t_s += dt_s

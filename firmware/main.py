@@ -6,7 +6,7 @@
 #       [--rate HZ] [--frames N] [--seed S] [--realtime] [--start-us T]
 #       [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]
 #       [--keepalive-ms MS] [--exit-on-eof] [--ideal-board] [--load-ohm R]
-#       [--flash-dir DIR]
+#       [--flash-dir DIR] [--hold]
 # The simulated board has the real parts' analog errors unless --ideal-board
 # (docs/simulation.md); --load-ohm R puts a resistor on every channel instead of
 # the electrodes (the self-test's dummy load); --flash-dir is the simulated
@@ -19,6 +19,10 @@
 # simulator's clock: a scripted run with no host on the virtual clock, where
 # time runs faster than any host could answer, passes --keepalive-ms 0 (off;
 # allowed only here on the simulator's command line, never over the wire).
+# --hold (with --realtime): the scenario waits at its time 0, and its frames are not
+# counted, until the host's session begins (a SIM_START message on stdin, board_sim):
+# a recording then holds the whole scenario however long the host waited before it
+# (e.g. for an LSL recorder), and the device runs its frames after that.
 import sys
 
 # On the rp2 a boot error is printed on the serial port and kept here (the
@@ -82,6 +86,7 @@ except ImportError as e:  # on the board: a file missing from its flash (run `st
 USAGE = ("usage: micropython firmware/main.py [--scenario NAME|FILE.csv] [--channels 1-4] [--rate 10-100]"
           " [--frames N] [--seed S] [--realtime] [--start-us T] [--auto I0,T0,XSTAR,YSTAR] [--mode akhtar|fast|open|charge|energy|pwlinear]"
          " [--keepalive-ms 0|%d-%d] [--exit-on-eof] [--ideal-board] [--load-ohm 100-1000000] [--flash-dir DIR]"
+         " [--hold]"
          % (hp.KEEPALIVE_MIN_MS, hp.KEEPALIVE_MAX_MS))
 
 
@@ -109,7 +114,7 @@ def parse(argv):
     o = {"scenario": "peel", "channels": cfg.N_CHANNELS, "rate": cfg.RATE_HZ, "frames": -1, "seed": 1,
          "realtime": False, "start": 0, "auto": None, "mode": sc.MODE_AKHTAR,
          "keepalive_ms": hp.KEEPALIVE_DEFAULT_MS, "exit_on_eof": False, "ideal": False, "load_ohm": 0,
-         "flash_dir": None}
+         "flash_dir": None, "hold": False}
     k = 0
     while k < len(argv):
         a = argv[k]
@@ -125,6 +130,10 @@ def parse(argv):
             continue
         if a == "--ideal-board":
             o["ideal"] = True
+            k += 1
+            continue
+        if a == "--hold":
+            o["hold"] = True
             k += 1
             continue
         if a not in _VALUED:
@@ -166,6 +175,8 @@ def parse(argv):
         else:
             raise UsageError("unknown option %s\n%s" % (a, USAGE))
         k += 2
+    if o["hold"] and not o["realtime"]:  # on the virtual clock a held device would spin out frames
+        raise UsageError("--hold needs --realtime (a host starts the scenario in its own time)")
     return o
 
 
@@ -225,6 +236,8 @@ def main_sim(argv):
     board = board_sim.SimBoard(cfg, clock, scen, o["channels"], o["seed"], usb, ideal=o["ideal"],
                                load_ohm=o["load_ohm"], flash_dir=o["flash_dir"])
     s = stim.Stimulator(board, clock, cfg, o["channels"], o["rate"], keepalive_ms=o["keepalive_ms"])
+    board.held = o["hold"]  # until the host's SIM_START (usb.on_sim): the scenario at time 0, no frame counted
+    usb.on_sim = board.sim
     if o["auto"]:
         auto_start(s, o, clock.ticks_us())
     frames = o["frames"]
@@ -234,9 +247,11 @@ def main_sim(argv):
     step = 1 if o["realtime"] else 50
     while frames > 0:
         chunk = step if frames > step else frames
+        held = board.held
         s.run(chunk)
         usb.flush()
-        frames -= chunk
+        if not held:
+            frames -= chunk
         if o["exit_on_eof"] and usb.eof:  # the host is gone: stop stimulating, exit
             s.stop_all(hp.STOP_KEEPALIVE)
             usb.flush()

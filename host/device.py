@@ -108,7 +108,12 @@ class Device:
     @contextmanager
     def live(self, timeout_ms: int = hp.KEEPALIVE_DEFAULT_MS, arm: int | None = None):
         """Keep the device alive while the block runs (arm channel `arm` first if
-        given); DISARM on any exit: normal, error, Ctrl-C or SIGTERM (cli.main)."""
+        given); DISARM on any exit: normal, error, Ctrl-C or SIGTERM (cli.main). The
+        session begins here: a simulated device starts its scenario now (Transport.begin;
+        a wrapper that has none, e.g. a test's recording one, starts nothing)."""
+        begin = getattr(self.t, "begin", None)
+        if begin is not None:
+            begin()
         if self.t.realtime:
             self.keep_alive(timeout_ms)
         try:

@@ -7,7 +7,9 @@ pyserial's `loop://` handlers).
   — the real firmware in the MicroPython VM with the simulated board, speaking
   the same report stream on its stdio. The board has the real parts' analog
   errors unless `board=ideal`; `load=OHMS` puts a resistor in place of the
-  electrodes (the self-test's dummy load).
+  electrodes (the self-test's dummy load). In real time its scenario (and its
+  `frames`, by default the scenario's length) starts with the host's session
+  (`begin()`: record, monitor, arm), not at the VM's boot.
 - `emu://[SCENARIO][?channels=N&seed=S&auto=I0,T0,X,Y&load=OHM&board=real|ideal]` — the real MicroPython rp2
   firmware on the emulated Pico (rp2040js, ../shared/emulator): its main loop
   (main_rp2) over its USB HID interface, the simulated electrode on its ADC.
@@ -58,6 +60,10 @@ class Transport:
 
     def write(self, report: bytes) -> None:
         raise NotImplementedError
+
+    def begin(self) -> None:
+        """The host's session begins (Device.live: record, monitor, arm). A board has nothing
+        to start; sim:// starts its scenario's clock here."""
 
     def close(self) -> None:
         pass
@@ -131,14 +137,17 @@ class SimTransport(Transport):
     def __init__(self, scenario: str, channels: int = 2, seed: int = 1, realtime: bool = True,
                  auto: str | None = None, mode: str = "akhtar", frames: int | None = None,
                  ideal: bool = False, load_ohm: int = 0):
-        from .simrun import FIRMWARE, board_args, micropython_exe, vm_popen
+        from .simrun import FIRMWARE, board_args, firmware_module, micropython_exe, vm_popen
 
         self.url = f"sim://{scenario}"
         self.realtime = realtime
         args = [micropython_exe(), str(FIRMWARE / "main.py"), "--scenario", scenario, "--channels", str(channels),
                 "--seed", str(seed), "--mode", mode, "--exit-on-eof"] + board_args(ideal, load_ohm)
         if realtime:
-            args.append("--realtime")  # the board's keep-alive, on the host's time line
+            # the board's keep-alive, on the host's time line; the scenario and its frames wait for
+            # begin(): however long the host waits before its session (an LSL recorder), the
+            # session gets the whole scenario, and the device does not run out before it starts
+            args += ["--realtime", "--hold"]
         else:
             args += ["--keepalive-ms", "0"]  # virtual time outruns any host: off (docs/safety.md)
         if auto:
@@ -148,6 +157,8 @@ class SimTransport(Transport):
         self.p = vm_popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
         self.q: queue.Queue = queue.Queue(maxsize=100000)
         self.error = ""
+        bs = firmware_module("board_sim")  # the simulated world's message that starts the scenario
+        self._start = bytes((bs.MAGIC0, bs.MAGIC_SIM, bs.SIM_START)) + bytes(hp.REPORT_LEN - 1) if realtime else None
         self.reader = threading.Thread(target=self._pump, daemon=True)
         self.reader.start()
 
@@ -178,12 +189,23 @@ class SimTransport(Transport):
         if r is None:
             self.q.put(None)
             msg = f"the simulated device stopped (exit code {self.p.returncode})"
+            if self.p.returncode == 0 and not self.error:
+                msg += ": it ran its frames (the scenario's length from the session's start, or frames=N of the URL)"
             raise Disconnected(msg + (f": {self.error}" if self.error else ""))
         return r
 
     def write(self, report: bytes) -> None:
+        self._send(b"\xa5\x5a" + bytes(report))
+
+    def begin(self) -> None:
+        """Start the scenario (once): a message to the simulated world, not a report (board_sim)."""
+        if self._start is not None:
+            start, self._start = self._start, None
+            self._send(start)
+
+    def _send(self, frame: bytes) -> None:
         try:
-            self.p.stdin.write(b"\xa5\x5a" + bytes(report))
+            self.p.stdin.write(frame)
             self.p.stdin.flush()
         except (BrokenPipeError, OSError):
             raise Disconnected("the simulated device stopped") from None

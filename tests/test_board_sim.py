@@ -167,3 +167,84 @@ def test_the_firmware_read_of_an_electrode_is_its_end_of_pulse_rp_within_the_las
         early_mv = 1000 / 1000 * (e.rs + e.rp_skin * (1 - math.exp(-(t_us - 4) / e.tau))) * 1000
         count_mv = cfg.VMON_UV_PER_COUNT / 1000
         assert early_mv - count_mv <= got_mv <= end_mv + count_mv, (t_us, got_mv, early_mv, end_mv)
+
+
+def test_a_held_scenario_stays_at_its_time_0_until_the_host_starts_it():
+    """SimBoard.held (main.py --hold, what sim:// runs in real time): the world is the scenario's
+    state at time 0 however long the board runs; SIM_START (board.sim) starts its clock then."""
+    scen = sim_electrode.Scenario("t", [(0.0, 0.6, 1.0, 0.0), (1.0, 0.0, 0.5, 0.0)], 1.0, interp_h=True)
+    b = board_sim.SimBoard(cfg, board_sim.VirtualClock(), scen, 1, 3)
+    b.held = True
+    for _ in range(100):  # 2 s of frames
+        b.clock.advance(20000)
+        b.feed_watchdog()
+    e = b.electrodes[0]
+    assert b.t_s == 0.0 and e.contact == 0.6 and e.h == 1.0
+    b.sim(board_sim.SIM_START + 1)  # not a start: nothing
+    b.clock.advance(20000)
+    b.feed_watchdog()
+    assert b.held and b.t_s == 0.0
+    b.sim(board_sim.SIM_START)
+    b.clock.advance(250000)
+    b.feed_watchdog()
+    assert not b.held and b.t_s == 0.25 and abs(e.contact - 0.45) < 1e-12 and abs(e.h - 0.875) < 1e-12
+    b.sim(board_sim.SIM_START)  # once running, a second start changes nothing
+    b.clock.advance(250000)
+    b.feed_watchdog()
+    assert b.t_s == 0.5
+
+
+def _reports(out, want, timeout_s=60.0):
+    """Read framed reports from the VM's stdout until `want` says stop or it ends; (reports, ended)."""
+    import os
+    import select
+    import time
+
+    reps, buf = [], b""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not want(reps):
+        if not select.select([out], [], [], 1.0)[0]:
+            continue
+        chunk = os.read(out.fileno(), 65536)
+        if not chunk:
+            return reps, True
+        buf += chunk
+        while len(buf) >= 66:
+            assert buf[:2] == bytes((board_sim.MAGIC0, board_sim.MAGIC1))
+            reps.append(buf[2:66])
+            buf = buf[66:]
+    return reps, False
+
+
+def test_a_held_vm_runs_its_frames_only_after_the_host_starts_its_scenario(micropython):
+    """main.py --realtime --hold --frames 10: the device runs, reports and counts no frame until
+    the SIM_START message arrives on stdin (here after 30 frames: however long a host waits),
+    then runs its 10 frames and exits 0. The message is for the simulated world: the firmware
+    answers nothing to it. Without --realtime, --hold is refused in one line."""
+    import subprocess
+
+    import hid_protocol as hp
+
+    from conftest import SHARED
+
+    env = {"MICROPYPATH": f"{SHARED}:{FIRMWARE}"}
+    args = [micropython, str(FIRMWARE / "main.py"), "--scenario", "steady", "--channels", "1", "--frames", "10",
+            "--auto", "1000,1000,-1670,186000", "--exit-on-eof"]
+    p = subprocess.Popen(args + ["--realtime", "--hold"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, env=env)
+    try:
+        tel = lambda reps: [r for r in reps if r[0] == hp.REP_TELEMETRY]  # noqa: E731
+        before, ended = _reports(p.stdout, lambda reps: len(tel(reps)) >= 30)
+        assert not ended and len(tel(before)) >= 30, (len(tel(before)), p.stderr.read())
+        p.stdin.write(bytes((board_sim.MAGIC0, board_sim.MAGIC_SIM, board_sim.SIM_START)) + bytes(63))
+        p.stdin.flush()
+        after, ended = _reports(p.stdout, lambda reps: False)
+        assert ended and p.wait(timeout=30) == 0
+    finally:
+        p.kill() if p.poll() is None else None
+    assert 10 <= len(tel(after)) == len(after)  # its 10 frames after the start, and no answer to the message
+    seq = [int.from_bytes(r[hp.O_SEQ:hp.O_SEQ + 4], "little") for r in tel(before + after)]
+    assert seq == list(range(seq[0], seq[0] + len(seq)))  # one stream: nothing lost around the message
+    r = subprocess.run(args + ["--hold"], capture_output=True, env=env, timeout=60)
+    assert r.returncode == 2 and r.stderr.decode().strip() == "steadytouch firmware: --hold needs --realtime " \
+        "(a host starts the scenario in its own time)", r.stderr

@@ -37,9 +37,12 @@ def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
     assert p.returncode == 1 and "device lost: the simulated device stopped (exit code 0)" in p.stderr  # ran to its end
     meta, rows = read_recording(out)
     assert meta["firmware"] == "0.2.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
-    assert len(rows) == 200 and {r["channel"] for r in rows} == {0, 1}
+    # its 100 frames count from the recording's start (sim://'s scenario waits for the session): all of
+    # them recorded, and the few frames it ran while the host read its metadata before
+    assert len(rows) >= 200 and {r["channel"] for r in rows} == {0, 1}
     a = run("audit", str(out))
-    assert a.returncode == 0 and "200 pulses replayed through sensation_core: bit-exact" in a.stdout, a.stdout + a.stderr
+    assert a.returncode == 0 and f"{len(rows)} pulses replayed through sensation_core: bit-exact" in a.stdout, \
+        a.stdout + a.stderr
     # a pulse whose I differs from the law is found
     lines = out.read_text().splitlines()
     k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 150

@@ -60,12 +60,34 @@ def _check_layout_and_meta(xml: str, meta: dict, n_channels: int):
     assert "minima" in d.find("clock").findtext("timestamps") or "virtual" in d.find("clock").findtext("timestamps")
 
 
+LATE_S = 3.0  # a recorder that connects this long after the outlets appeared (LabRecorder's user clicking)
+
+
+def _pull_late(lsl, source_id: str, proc, late_s: float = LATE_S):
+    """pull_all, but the inlets connect late_s after the outlets appeared: the recording waits for
+    them (--lsl-wait) while the simulated device already runs. Once made the test deterministic:
+    sim://'s 8-s scenario ran from the VM's boot, so a recorder later than ~1.5 s (a loaded CI
+    machine) let the device end first ("device lost ... exit code 0")."""
+    import time
+
+    assert lsl.resolve_byprop("source_id", f"{source_id}-telemetry", 1, 20), "stream not found"
+    time.sleep(late_s)  # a lower bound: the recorder is at least this late, whatever the load
+    return pull_all(lsl, source_id, proc)
+
+
+def _device_s(rows_or_samples, i_from, i_to, t_col=None):
+    """Device-clock seconds from one report to a later one (time_us wraps at 2**30)."""
+    a, b = rows_or_samples[i_from], rows_or_samples[i_to]
+    ta, tb = (a["time_us"], b["time_us"]) if t_col is None else (a[t_col], b[t_col])
+    return ((tb - ta) % (1 << 30)) / 1e6
+
+
 def test_record_lsl_equals_the_csv_and_marks_arm_stop_disarm(lsl, tmp_path):
     url = f"sim://off?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
     csv = tmp_path / "run.csv"
     p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", "6.5", "--device", url)
     try:
-        xml, samples, stamps, markers = pull_all(lsl, f"steadytouch-{url}", p)
+        xml, samples, stamps, markers = _pull_late(lsl, f"steadytouch-{url}", p)
         out, err = p.communicate(timeout=30)
     finally:
         p.kill() if p.poll() is None else None
@@ -99,6 +121,41 @@ def test_record_lsl_equals_the_csv_and_marks_arm_stop_disarm(lsl, tmp_path):
     gaps = [(t2 - t1) - ((d2 - d1) % (1 << 30)) / 1e6 for (d1, t1), (d2, t2) in zip(ch0, ch0[1:])]
     assert max(abs(g) for g in gaps[50:]) < 1e-3
     assert "LSL:" in out and "disarmed" in out
+    # the scenario starts with the recording, not at the device's boot: the electrode comes off
+    # 5.02 s into sim://off, so at least 5 s (device clock) after the first recorded pulse
+    stop_row = next(k for k, r in enumerate(rows) if r["channel"] == 0 and r["stop"] == hp.STOP_ELECTRODE_OFF)
+    assert _device_s(rows, 0, stop_row) >= 5.0, _device_s(rows, 0, stop_row)
+
+
+def test_record_lsl_keeps_every_row_when_the_simulated_device_ends_first(lsl, tmp_path):
+    """A recording longer than the simulated device runs (frames=100: 2 s), with a late recorder:
+    the device's 100 frames all come after the recording started (they count from it, not from
+    the boot), the host says in one stderr line that the device stopped, exits 1, and keeps every
+    row: the CSV has all 100 frames of both channels, every LSL sample equals its CSV row, none is
+    missing, and the closing clock marker still goes out."""
+    url = f"sim://steady?channels=2&frames=100&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
+    csv = tmp_path / "run.csv"
+    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", "30", "--device", url)
+    try:
+        xml, samples, stamps, markers = _pull_late(lsl, f"steadytouch-{url}", p)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill() if p.poll() is None else None
+    assert p.returncode == 1, (out, err)
+    assert err.strip().splitlines() == [err.strip()] and "Traceback" not in err
+    assert "device lost: the simulated device stopped (exit code 0)" in err and "frames=N" in err, err
+    meta, rows = read_recording(csv)
+    assert CUT not in meta
+    pulses = [r for r in rows if r["i_ua"] > 0]
+    assert len(pulses) >= 200 and {r["channel"] for r in pulses} == {0, 1}, len(pulses)
+    assert _device_s(rows, 0, -1) >= 1.98  # 100 frames of 20 ms, all of them recorded
+    by_seq = {r["seq"]: [r[c] for c in COLUMNS] for r in rows}
+    assert len(samples) >= 200 and all(by_seq[s[0]] == s for s in samples)
+    assert [s[0] for s in samples] == [r["seq"] for r in rows if r["seq"] >= samples[0][0]]
+    assert samples[-1][0] == rows[-1]["seq"]  # the last row went out on LSL too
+    texts = [m for m, _ in markers]
+    assert texts[0] == "arm ch=all" and texts[-1].startswith("clock offset_s="), texts
+    assert f"saved {len(rows)} rows" in out and f"LSL: {len(samples)} samples" in out, out
 
 
 def test_sim_lsl_streams_the_whole_run_on_its_virtual_clock(lsl, tmp_path):
