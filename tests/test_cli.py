@@ -39,7 +39,7 @@ def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
     assert meta["firmware"] == "0.2.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
     # its 100 frames count from the recording's start (sim://'s scenario waits for the session): all of
     # them recorded, and the few frames it ran while the host read its metadata before
-    assert len(rows) >= 200 and {r["channel"] for r in rows} == {0, 1}
+    assert 200 <= len(rows) <= 300 and {r["channel"] for r in rows} == {0, 1}  # (the few: < 50 frames)
     a = run("audit", str(out))
     assert a.returncode == 0 and f"{len(rows)} pulses replayed through sensation_core: bit-exact" in a.stdout, \
         a.stdout + a.stderr
