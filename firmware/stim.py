@@ -46,7 +46,6 @@ FW_VERSION = (0, 2, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
-_rp_from_vp = sc.rp_from_vp  # one global load in _measure instead of a module attribute's
 # Literals for the viper methods (const() folds only literals of this module; checked
 # against the modules' constants below)
 _C_T_FLOOR_US = const(20)
@@ -56,7 +55,9 @@ _C_RP_MAX_OHM = const(200000)
 _C_STOP_LIMIT = const(6)
 _C_STOP_OFF = const(3)
 _C_STOP_RP_FAULT = const(4)
-if (hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
+_C_VP_LIMIT_MV = const(1000000)
+_C_RP_OVER = const(1073741823)
+if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
         or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
@@ -567,10 +568,12 @@ class Stimulator:
             vp = x * uv // 1000
         v[_VP] = vp
         di = v[_DI]
-        if di:
-            v[_RP] = int(_rp_from_vp(vp, di))
-        else:
+        if di <= 0:
             v[_RP] = 0
+        elif vp > _C_VP_LIMIT_MV:  # sc.rp_from_vp, inline (a call is ~11 us on the chip): vp >= 0 and
+            v[_RP] = _C_RP_OVER  # vp * 1000 < 2**30 (x * uv < 2**30, above); tests/test_frame_peak.py
+        else:  # checks it against sc.rp_from_vp
+            v[_RP] = (vp * 1000 + (di >> 1)) // di
 
     @micropython.viper
     def _supervise(self, c) -> bool:
@@ -603,7 +606,8 @@ class Stimulator:
             ctl.calibrate(c.i0, c.t0, v[_RP], c.x, c.y)
             v[_CALIB] = 0
         else:
-            ctl.delivered(v[_DI], v[_DT])  # a held proposal was not what was measured
+            ctl.i_ua = v[_DI]  # ctl.delivered, inline: a held proposal was not what was measured
+            ctl.t_us = v[_DT]
             if int(ctl.update(v[_RP])) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
