@@ -343,7 +343,6 @@ class Stimulator:
         self._f_pulse = self._pulse
         self._f_channel = self._channel
         self._f_measure = self._measure
-        self._f_supervise = self._supervise
         self._f_control = self._control
         self._f_output = self._output
         self.started = False
@@ -477,10 +476,10 @@ class Stimulator:
     @micropython.native
     def _channel(self, c):
         """A channel's work after its pulse, in the order of the paper's Fig. 3 loop
-        (_measure, _supervise, _control, _output, _encode_telemetry; bound once: __init__)."""
+        (_measure, _control: the supervisor's rules then the controller, _output,
+        _encode_telemetry; bound once: __init__)."""
         self._f_measure(c)
-        if self._f_supervise(c):
-            self._f_control(c)
+        self._f_control(c)
         if self._overlap:
             self._f_output(c)  # the amplitude settles during the rest of the frame
         else:
@@ -576,39 +575,35 @@ class Stimulator:
             v[_RP] = (vp * 1000 + (di >> 1)) // di
 
     @micropython.viper
-    def _supervise(self, c) -> bool:
-        """The electrode rules on this pulse's Rp: off or shorted latches the
-        channel. True if the controller may act on the measurement."""
+    def _control(self, c):
+        """The supervisor, then the controller's next pulse. Supervisor: the electrode
+        rules on this pulse's Rp (no pulse: nothing to act on; off or shorted latches
+        the channel). Controller: one measurement may lower the charge, raising it
+        takes two in a row (the smaller of the two proposals). The products are of
+        currents and widths within the soft limits: < 2**30. (One method: a call is
+        ~10 us on the chip.)"""
         v = ptr32(c.v)
         if v[_DI] == 0:
-            return False
+            return
         rp = v[_RP]
         off = int(self.vp_off_mv)
         # off: the corrected or the raw reading at compliance (a wrong stored gain > 1 must not hide it)
         if v[_VP] >= off or v[_VPR] >= off or rp > _C_RP_MAX_OHM:
             self._latch(c, _C_STOP_OFF)
             c.ctl.stop(sc.ST_RP_HIGH)
-            return False
+            return
         if rp < _C_RP_MIN_OHM:
             self._latch(c, _C_STOP_RP_FAULT)
             c.ctl.stop(sc.ST_RP_LOW)
-            return False
-        return True
-
-    @micropython.viper
-    def _control(self, c):
-        """The controller's next pulse; one measurement may lower the charge,
-        raising it takes two in a row (the smaller of the two proposals). The
-        products are of currents and widths within the soft limits: < 2**30."""
-        v = ptr32(c.v)
+            return
         ctl = c.ctl
         if v[_CALIB]:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
-            ctl.calibrate(c.i0, c.t0, v[_RP], c.x, c.y)
+            ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
             v[_CALIB] = 0
         else:
             ctl.i_ua = v[_DI]  # ctl.delivered, inline: a held proposal was not what was measured
             ctl.t_us = v[_DT]
-            if int(ctl.update(v[_RP])) & _C_FAULT_MASK:
+            if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
         ni = int(ctl.i_ua)
