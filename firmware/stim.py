@@ -335,16 +335,15 @@ class Stimulator:
         self._wait = board.wait if self._overlap else None
         # Bound once, here: on the chip a method looked up on an instance costs ~15 us more than
         # a call of a bound one (~11 us), and the frame makes ~8 such calls a channel
-        # (docs/performance.md); calling a bound method allocates nothing. (_encode_telemetry
-        # is looked up each time: tests replace it on the class.)
+        # (docs/performance.md); calling a bound method allocates nothing.
         self._set_amplitude = board.set_amplitude
         self._send = board.send
         self._recv = board.recv
         self._f_pulse = self._pulse
-        self._f_channel = self._channel
         self._f_measure = self._measure
         self._f_control = self._control
         self._f_output = self._output
+        self._f_telemetry = self._encode_telemetry
         self.started = False
         self.deadline = 0
         self.errors = 0
@@ -409,18 +408,25 @@ class Stimulator:
         chans = self.chans
         overlap = self._overlap
         n = self.n
-        prev = None
         k = 0
-        while k < n:
-            c = chans[k]
-            ns = self._f_pulse(k, c)  # on the rp2 the gate is open when this returns (self._pulse)
-            if prev is not None:
-                self._f_channel(prev)  # meanwhile: the previous channel (self._channel)
+        while k <= n:  # channel k's pulse, and meanwhile channel k - 1's work
+            ns = 0
+            if k < n:
+                ns = self._f_pulse(k, chans[k])  # on the rp2 the gate is open when this returns (self._pulse)
+            if k > 0:  # channel k - 1's work after its pulse, in the order of the paper's Fig. 3 loop
+                c = chans[k - 1]  # (inline here, not a method: a call is ~10 us on the chip)
+                self._f_measure(c)  # self._measure
+                self._f_control(c)  # self._control: the supervisor's rules, then the controller
+                if overlap:
+                    self._f_output(c)  # self._output: the amplitude settles during the rest of the frame
+                else:  # (the simulated board allocates: outside the heap-locked section)
+                    self._leave()
+                    self._f_output(c)
+                    self._enter()
+                self._f_telemetry(c)  # self._encode_telemetry
             if overlap and ns:
                 self._wait()  # until channel k's capture is complete
-            prev = c
             k += 1
-        self._f_channel(prev)
         self.locked = 0  # _leave, inlined
         _unlock()
         irq_on = self._irq_on
@@ -472,21 +478,6 @@ class Stimulator:
             v[_NS] = int(self.board.fire(k, t))
             self._enter()
         return v[_NS]
-
-    @micropython.native
-    def _channel(self, c):
-        """A channel's work after its pulse, in the order of the paper's Fig. 3 loop
-        (_measure, _control: the supervisor's rules then the controller, _output,
-        _encode_telemetry; bound once: __init__)."""
-        self._f_measure(c)
-        self._f_control(c)
-        if self._overlap:
-            self._f_output(c)  # the amplitude settles during the rest of the frame
-        else:
-            self._leave()
-            self._f_output(c)
-            self._enter()
-        self._encode_telemetry(c)
 
     @micropython.native
     def _serve_commands(self, now):
