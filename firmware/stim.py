@@ -18,6 +18,7 @@
 # a section then runs with interrupts held off, so no such callback can land
 # inside it (the USB controller itself goes on: PIO, DMA and timers need no CPU).
 import struct
+import sys
 from array import array
 
 import sensation_core as sc
@@ -72,6 +73,8 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
+if sys.byteorder != "little":  # _encode_telemetry packs the fields into little-endian words
+    raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
 
 
 _EDGE_RISE_COUNTS = const(8)  # what the last sample may rise above its predecessor: noise (~3 sigma) ...
@@ -671,11 +674,8 @@ class Stimulator:
         allocated (each value stored back is a small int)."""
         ctl = c.ctl
         cv = ptr32(c.v)
-        b = c.tel
-        p8 = ptr8(b)  # the buffer is a heap block: 4-byte aligned for the 32-bit stores
-        p16 = ptr16(b)
-        p32 = ptr32(b)
-        di = cv[_DI]
+        p32 = ptr32(c.tel)  # the buffer is a heap block: 4-byte aligned; fields packed into words
+        di = cv[_DI]  # (little-endian, as hid_protocol's '<': the lowest byte first)
         f = 0
         if cv[_ARMED]:
             f = 0x01  # FLAG_ARMED
@@ -686,28 +686,22 @@ class Stimulator:
         if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
         seq = int(self.seq)
-        p8[0] = 0x01  # REP_TELEMETRY
-        p8[1] = cv[_CH]
-        p8[2] = int(ctl.mode)
-        p8[3] = cv[_STOP]
+        p32[0] = 0x01 | (cv[_CH] << 8) | (int(ctl.mode) << 16) | (cv[_STOP] << 24)  # REP_TELEMETRY, O_CH, O_MODE, O_STOP
         p32[1] = seq  # O_SEQ 4
         p32[2] = int(self.frame_t)  # O_TIME 8
-        p16[6] = di  # O_I 12
-        p16[7] = cv[_DT]  # O_T 14
+        p32[3] = (di & 0xFFFF) | ((cv[_DT] & 0xFFFF) << 16)  # O_I 12, O_T 14
         p32[4] = cv[_VP]  # O_VP 16
         p32[5] = cv[_RP]  # O_RP 20
         p32[6] = int(ctl.me_ua2ms)  # O_ME 24
         p32[7] = int(ctl.mq_target_fc_per_ohm)  # O_MQT 28
         p32[8] = int(ctl.mq_last_fc_per_ohm) if di else 0  # O_MQL 32
-        p16[18] = int(ctl.status)  # O_STATUS 36
-        p16[19] = int(ctl.i_ua)  # O_NEXT_I 38
-        p16[20] = int(ctl.t_us)  # O_NEXT_T 40
+        p32[9] = (int(ctl.status) & 0xFFFF) | ((int(ctl.i_ua) & 0xFFFF) << 16)  # O_STATUS 36, O_NEXT_I 38
         v = int(self.overruns)  # hp.sat16 (run() changes both between frames: the same in every
-        p16[21] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame); O_OVERRUNS 42
-        v = int(self.loop_us)  # the previous frame's; O_LOOP 44
-        p16[22] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
-        p8[46] = f  # O_FLAGS
-        p8[47] = int(self.rate_hz)  # O_RATE
+        v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame)
+        p32[10] = (int(ctl.t_us) & 0xFFFF) | (v << 16)  # O_NEXT_T 40, O_OVERRUNS 42
+        v = int(self.loop_us)  # the previous frame's
+        v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
+        p32[11] = v | (f << 16) | (int(self.rate_hz) << 24)  # O_LOOP 44, O_FLAGS 46, O_RATE 47
         self.seq = (seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):
