@@ -5,7 +5,8 @@
 #
 # The frame (Stimulator.frame) reads as the paper's Fig. 3 loop, channel by
 # channel: pulse (the hard-limit check right before the gate opens), then
-# measure -> supervise -> control -> output -> report, one short method each.
+# measure -> supervise -> control -> output -> report, a short method each (the
+# supervisor's rules open _control: a call fewer; Rp is computed in _measure).
 # On the rp2 the PIO gate and the ADC -> DMA capture deliver a pulse by
 # themselves: channel k's pulse runs while the CPU does channel k-1's work.
 #
@@ -18,7 +19,6 @@
 # a section then runs with interrupts held off, so no such callback can land
 # inside it (the USB controller itself goes on: PIO, DMA and timers need no CPU).
 import struct
-import sys
 from array import array
 
 import sensation_core as sc
@@ -73,7 +73,7 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
-if sys.byteorder != "little":  # _encode_telemetry packs the fields into little-endian words
+if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
 
 
@@ -394,7 +394,7 @@ class Stimulator:
     def frame(self, now):
         """One frame. Every channel in turn: its pulse (hard limits checked right
         before the gate opens), then measure -> supervise -> control -> output ->
-        report. On a board that delivers pulses by itself (the rp2: PIO gate,
+        report (_measure, _control: the supervisor's rules first, _output, _encode_telemetry). On a board that delivers pulses by itself (the rp2: PIO gate,
         ADC -> DMA capture) channel k's pulse runs while the CPU does channel
         k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board

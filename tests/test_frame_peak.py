@@ -161,7 +161,8 @@ def test_measure_gives_the_cores_rp_from_vp():
     import re
     from conftest import FIRMWARE
     uv_word = int(re.search(r"^_UV = const\((\d+)\)", (FIRMWARE / "stim.py").read_text(), re.M).group(1))
-    cases += [(4095, 262143, 1), (4095, 262143, 10000), (4095, 244141, 7), (1, 1, 1), (0, 5, 3)]
+    cases += [(4095, 262143, 1), (4095, 262143, 10000), (4095, 244141, 7), (1, 1, 1), (0, 5, 3),
+              (4000, 250000, 9999), (4000, 250000, 1)]  # Vp exactly VP_LIMIT_MV: still a resistance
     _, res, _ = run_fw(f"""
         cases = json.loads({json.dumps(json.dumps(cases))})
         s, board, usb, clock = make('steady', 1)
@@ -183,3 +184,4 @@ def test_measure_gives_the_cores_rp_from_vp():
     assert len(got) == len(cases)
     assert all(rp == want for _, rp, want in got), [g for g in got if g[1] != g[2]][:5]
     assert any(vp > 1000000 for vp, _, _ in got)  # the electrode-off value was reached
+    assert any(vp == 1000000 for vp, _, _ in got)  # and the limit itself
