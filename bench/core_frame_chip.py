@@ -9,10 +9,11 @@ bench_sc.py's scenario c), timed with ticks_us on the emulated clock less the em
 timing window:
 - `update`: `c.update(rp)` alone, the bound method fetched once (as bench_sc.py);
 - `frame`: what stim.Stimulator._control spends in the core for a channel:
-  `ctl.delivered(c.di, c.dt)`, `ctl.update(c.rp)`, then `ctl.i_ua`, `ctl.t_us` read,
+  `ctl.i_ua = c.di`, `ctl.t_us = c.dt` (delivered(), inline), `ctl.update(c.rp)`, then
+  `ctl.i_ua`, `ctl.t_us` read,
   from a plain function, the controller an attribute of a channel object (the
   pulse delivered = the controller's own last output);
-- `rp_from_vp`: `sc.rp_from_vp(vp, c.di)` as stim.Stimulator._measure calls it.
+- `rp_from_vp`: `sc.rp_from_vp(vp, c.di)` (stim.Stimulator._measure now computes it inline).
 The chip's pulses are checked against CPython's (hash of I, T, status per update).
 --core-rev REV (repeatable) times git revision REV's core instead (its shared/
 modules); the hashes are still CPython's of the working tree (same answers expected).
@@ -71,7 +72,8 @@ def make(mode, skin):
 
 def control(ch):  # the core's part of stim.Stimulator._control for one channel
     ctl = ch.ctl
-    ctl.delivered(ch.di, ch.dt)
+    ctl.i_ua = ch.di  # delivered(), inline as in _control
+    ctl.t_us = ch.dt
     st = ctl.update(ch.rp)
     ni = ctl.i_ua
     nt = ctl.t_us

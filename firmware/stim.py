@@ -5,7 +5,8 @@
 #
 # The frame (Stimulator.frame) reads as the paper's Fig. 3 loop, channel by
 # channel: pulse (the hard-limit check right before the gate opens), then
-# measure -> supervise -> control -> output -> report, one short method each.
+# measure -> supervise -> control -> output -> report, a short method each (the
+# supervisor's rules open _control: a call fewer; Rp is computed in _measure).
 # On the rp2 the PIO gate and the ADC -> DMA capture deliver a pulse by
 # themselves: channel k's pulse runs while the CPU does channel k-1's work.
 #
@@ -46,7 +47,6 @@ FW_VERSION = (0, 2, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
-_rp_from_vp = sc.rp_from_vp  # one global load in _measure instead of a module attribute's
 # Literals for the viper methods (const() folds only literals of this module; checked
 # against the modules' constants below)
 _C_T_FLOOR_US = const(20)
@@ -56,7 +56,9 @@ _C_RP_MAX_OHM = const(200000)
 _C_STOP_LIMIT = const(6)
 _C_STOP_OFF = const(3)
 _C_STOP_RP_FAULT = const(4)
-if (hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
+_C_VP_LIMIT_MV = const(1000000)
+_C_RP_OVER = const(1073741823)
+if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
         or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
@@ -71,6 +73,8 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
+if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
+    raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
 
 
 _EDGE_RISE_COUNTS = const(8)  # what the last sample may rise above its predecessor: noise (~3 sigma) ...
@@ -334,17 +338,15 @@ class Stimulator:
         self._wait = board.wait if self._overlap else None
         # Bound once, here: on the chip a method looked up on an instance costs ~15 us more than
         # a call of a bound one (~11 us), and the frame makes ~8 such calls a channel
-        # (docs/performance.md); calling a bound method allocates nothing. (_encode_telemetry
-        # is looked up each time: tests replace it on the class.)
+        # (docs/performance.md); calling a bound method allocates nothing.
         self._set_amplitude = board.set_amplitude
         self._send = board.send
         self._recv = board.recv
         self._f_pulse = self._pulse
-        self._f_channel = self._channel
         self._f_measure = self._measure
-        self._f_supervise = self._supervise
         self._f_control = self._control
         self._f_output = self._output
+        self._f_telemetry = self._encode_telemetry
         self.started = False
         self.deadline = 0
         self.errors = 0
@@ -392,7 +394,7 @@ class Stimulator:
     def frame(self, now):
         """One frame. Every channel in turn: its pulse (hard limits checked right
         before the gate opens), then measure -> supervise -> control -> output ->
-        report. On a board that delivers pulses by itself (the rp2: PIO gate,
+        report (_measure, _control: the supervisor's rules first, _output, _encode_telemetry). On a board that delivers pulses by itself (the rp2: PIO gate,
         ADC -> DMA capture) channel k's pulse runs while the CPU does channel
         k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board
@@ -409,18 +411,25 @@ class Stimulator:
         chans = self.chans
         overlap = self._overlap
         n = self.n
-        prev = None
         k = 0
-        while k < n:
-            c = chans[k]
-            ns = self._f_pulse(k, c)  # on the rp2 the gate is open when this returns (self._pulse)
-            if prev is not None:
-                self._f_channel(prev)  # meanwhile: the previous channel (self._channel)
+        while k <= n:  # channel k's pulse, and meanwhile channel k - 1's work
+            ns = 0
+            if k < n:
+                ns = self._f_pulse(k, chans[k])  # on the rp2 the gate is open when this returns (self._pulse)
+            if k > 0:  # channel k - 1's work after its pulse, in the order of the paper's Fig. 3 loop
+                c = chans[k - 1]  # (inline here, not a method: a call is ~10 us on the chip)
+                self._f_measure(c)  # self._measure
+                self._f_control(c)  # self._control: the supervisor's rules, then the controller
+                if overlap:
+                    self._f_output(c)  # self._output: the amplitude settles during the rest of the frame
+                else:  # (the simulated board allocates: outside the heap-locked section)
+                    self._leave()
+                    self._f_output(c)
+                    self._enter()
+                self._f_telemetry(c)  # self._encode_telemetry
             if overlap and ns:
                 self._wait()  # until channel k's capture is complete
-            prev = c
             k += 1
-        self._f_channel(prev)
         self.locked = 0  # _leave, inlined
         _unlock()
         irq_on = self._irq_on
@@ -472,21 +481,6 @@ class Stimulator:
             v[_NS] = int(self.board.fire(k, t))
             self._enter()
         return v[_NS]
-
-    @micropython.native
-    def _channel(self, c):
-        """A channel's work after its pulse, in the order of the paper's Fig. 3 loop
-        (_measure, _supervise, _control, _output, _encode_telemetry; bound once: __init__)."""
-        self._f_measure(c)
-        if self._f_supervise(c):
-            self._f_control(c)
-        if self._overlap:
-            self._f_output(c)  # the amplitude settles during the rest of the frame
-        else:
-            self._leave()
-            self._f_output(c)
-            self._enter()
-        self._encode_telemetry(c)
 
     @micropython.native
     def _serve_commands(self, now):
@@ -567,44 +561,43 @@ class Stimulator:
             vp = x * uv // 1000
         v[_VP] = vp
         di = v[_DI]
-        if di:
-            v[_RP] = int(_rp_from_vp(vp, di))
-        else:
+        if di <= 0:
             v[_RP] = 0
+        elif vp > _C_VP_LIMIT_MV:  # sc.rp_from_vp, inline (a call is ~11 us on the chip): vp >= 0 and
+            v[_RP] = _C_RP_OVER  # vp * 1000 < 2**30 (x * uv < 2**30, above); tests/test_frame_peak.py
+        else:  # checks it against sc.rp_from_vp
+            v[_RP] = (vp * 1000 + (di >> 1)) // di
 
     @micropython.viper
-    def _supervise(self, c) -> bool:
-        """The electrode rules on this pulse's Rp: off or shorted latches the
-        channel. True if the controller may act on the measurement."""
+    def _control(self, c):
+        """The supervisor, then the controller's next pulse. Supervisor: the electrode
+        rules on this pulse's Rp (no pulse: nothing to act on; off or shorted latches
+        the channel). Controller: one measurement may lower the charge, raising it
+        takes two in a row (the smaller of the two proposals). The products are of
+        currents and widths within the soft limits: < 2**30. (One method: a call is
+        ~10 us on the chip.)"""
         v = ptr32(c.v)
         if v[_DI] == 0:
-            return False
+            return
         rp = v[_RP]
         off = int(self.vp_off_mv)
         # off: the corrected or the raw reading at compliance (a wrong stored gain > 1 must not hide it)
         if v[_VP] >= off or v[_VPR] >= off or rp > _C_RP_MAX_OHM:
             self._latch(c, _C_STOP_OFF)
             c.ctl.stop(sc.ST_RP_HIGH)
-            return False
+            return
         if rp < _C_RP_MIN_OHM:
             self._latch(c, _C_STOP_RP_FAULT)
             c.ctl.stop(sc.ST_RP_LOW)
-            return False
-        return True
-
-    @micropython.viper
-    def _control(self, c):
-        """The controller's next pulse; one measurement may lower the charge,
-        raising it takes two in a row (the smaller of the two proposals). The
-        products are of currents and widths within the soft limits: < 2**30."""
-        v = ptr32(c.v)
+            return
         ctl = c.ctl
         if v[_CALIB]:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
-            ctl.calibrate(c.i0, c.t0, v[_RP], c.x, c.y)
+            ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
             v[_CALIB] = 0
         else:
-            ctl.delivered(v[_DI], v[_DT])  # a held proposal was not what was measured
-            if int(ctl.update(v[_RP])) & _C_FAULT_MASK:
+            ctl.i_ua = v[_DI]  # ctl.delivered, inline: a held proposal was not what was measured
+            ctl.t_us = v[_DT]
+            if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
         ni = int(ctl.i_ua)
@@ -681,11 +674,8 @@ class Stimulator:
         allocated (each value stored back is a small int)."""
         ctl = c.ctl
         cv = ptr32(c.v)
-        b = c.tel
-        p8 = ptr8(b)  # the buffer is a heap block: 4-byte aligned for the 32-bit stores
-        p16 = ptr16(b)
-        p32 = ptr32(b)
-        di = cv[_DI]
+        p32 = ptr32(c.tel)  # the buffer is a heap block: 4-byte aligned; fields packed into words
+        di = cv[_DI]  # (little-endian, as hid_protocol's '<': the lowest byte first)
         f = 0
         if cv[_ARMED]:
             f = 0x01  # FLAG_ARMED
@@ -696,28 +686,22 @@ class Stimulator:
         if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
         seq = int(self.seq)
-        p8[0] = 0x01  # REP_TELEMETRY
-        p8[1] = cv[_CH]
-        p8[2] = int(ctl.mode)
-        p8[3] = cv[_STOP]
+        p32[0] = 0x01 | (cv[_CH] << 8) | (int(ctl.mode) << 16) | (cv[_STOP] << 24)  # REP_TELEMETRY, O_CH, O_MODE, O_STOP
         p32[1] = seq  # O_SEQ 4
         p32[2] = int(self.frame_t)  # O_TIME 8
-        p16[6] = di  # O_I 12
-        p16[7] = cv[_DT]  # O_T 14
+        p32[3] = (di & 0xFFFF) | ((cv[_DT] & 0xFFFF) << 16)  # O_I 12, O_T 14
         p32[4] = cv[_VP]  # O_VP 16
         p32[5] = cv[_RP]  # O_RP 20
         p32[6] = int(ctl.me_ua2ms)  # O_ME 24
         p32[7] = int(ctl.mq_target_fc_per_ohm)  # O_MQT 28
         p32[8] = int(ctl.mq_last_fc_per_ohm) if di else 0  # O_MQL 32
-        p16[18] = int(ctl.status)  # O_STATUS 36
-        p16[19] = int(ctl.i_ua)  # O_NEXT_I 38
-        p16[20] = int(ctl.t_us)  # O_NEXT_T 40
+        p32[9] = (int(ctl.status) & 0xFFFF) | ((int(ctl.i_ua) & 0xFFFF) << 16)  # O_STATUS 36, O_NEXT_I 38
         v = int(self.overruns)  # hp.sat16 (run() changes both between frames: the same in every
-        p16[21] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame); O_OVERRUNS 42
-        v = int(self.loop_us)  # the previous frame's; O_LOOP 44
-        p16[22] = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
-        p8[46] = f  # O_FLAGS
-        p8[47] = int(self.rate_hz)  # O_RATE
+        v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame)
+        p32[10] = (int(ctl.t_us) & 0xFFFF) | (v << 16)  # O_NEXT_T 40, O_OVERRUNS 42
+        v = int(self.loop_us)  # the previous frame's
+        v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
+        p32[11] = v | (f << 16) | (int(self.rate_hz) << 24)  # O_LOOP 44, O_FLAGS 46, O_RATE 47
         self.seq = (seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):

@@ -282,9 +282,9 @@ class Controller:
         self.skin_rs_ohm = 0  # the skin model as set (set_skin; 0 = none)
         self.skin_beta_q16 = 0
         self.skin_cp_pf = 0
-        # the frame's two calls, bound once (on the chip a method is found after a miss in this map: ~15 us)
+        # the frame's call, bound once (on the chip a method is found after a miss in this map: ~15 us;
+        # the frame stores delivered()'s two attributes itself: stim.Stimulator._control)
         self.update = self.update
-        self.delivered = self.delivered
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         """Current, duration and charge limits; ValueError (nothing changed) if out
@@ -384,7 +384,7 @@ class Controller:
     def delivered(self, i_ua, t_us):
         """Tell the controller the pulse actually delivered, when it differs from
         its own last output (the firmware's supervisor may hold a proposal);
-        update() then measures mQ, and MODE_FAST its secant, against it."""
+        update() then measures mQ, and MODE_FAST its secant, against it (stim._control: inline)."""
         self.i_ua = i_ua
         self.t_us = t_us
 

@@ -148,14 +148,15 @@ FRAME_LOCK_SCRIPT = """
 import micropython, sensation_core as sc
 c = sc.Controller(500, 20000, 50, 2000, 20000000)
 c.calibrate(1000, 1000, 30000, -1670, 186000)
-assert "update" in c.__dict__ and "delivered" in c.__dict__  # bound once, on the instance
+assert "update" in c.__dict__  # bound once, on the instance (the frame stores delivered()'s two attributes itself)
 
 
 def frame(n):
     k = 0
     while k < n:
         c.set_mode(sc.MODES[k % 6])
-        c.delivered(c.i_ua, c.t_us)  # as stim's _control calls them
+        c.i_ua = c.i_ua  # the pulse delivered, as stim's _control stores it (delivered(), inline)
+        c.t_us = c.t_us
         c.update(10000 + (k * 7919) % 90000)
         k += 1
     return k

@@ -39,13 +39,13 @@ def test_an_allocation_in_the_frame_is_caught_and_stops_everything():
         s, board, usb, clock = make("steady")
         start(s)
         s.run(3)
-        orig = stim.Stimulator._encode_telemetry
-        def leaky(self, c):
-            orig(self, c)
-            self.junk = [c.i]          # allocates: must raise under the lock
-        stim.Stimulator._encode_telemetry = leaky
+        orig = s._f_telemetry  # the frame's report step, bound once (stim.Stimulator.__init__)
+        def leaky(c):
+            orig(c)
+            s.junk = [c.i]          # allocates: must raise under the lock
+        s._f_telemetry = leaky
         s.run(1)
-        stim.Stimulator._encode_telemetry = orig
+        s._f_telemetry = orig
         s.run(2)
         dump(usb)
         result(errors=s.errors, err=repr(s.last_error), stops=[c.stop for c in s.chans], pulses=board.pulses)

@@ -143,3 +143,45 @@ def test_a_clean_pulse_reads_its_last_sample_or_the_one_before(p):
         if edge < hi and v[edge - 1] - v[edge] > max(d for j, d in enumerate(drops) if lo + 1 + j != edge):
             if v[edge - 1] <= bound(v[edge - 2]):
                 assert got == v[edge - 1]
+
+
+def test_measure_gives_the_cores_rp_from_vp():
+    """stim._measure computes Rp inline (a call is ~11 us on the chip); it must equal the core's
+    sc.rp_from_vp(Vp, delivered current) for every count, monitor scale and current, the
+    electrode-off value past VP_LIMIT_MV included, and 0 when no pulse was delivered."""
+    cases = []
+
+    @settings(max_examples=300, database=None)
+    @given(ADC, st.one_of(st.integers(1, 262143), st.sampled_from([244141, 250000, 262143])),
+           st.one_of(st.integers(0, 12000), st.sampled_from([0, 1, 2, 3])))
+    def collect(x, uv, di):
+        cases.append((x, uv, di))
+
+    collect()
+    import re
+    from conftest import FIRMWARE
+    uv_word = int(re.search(r"^_UV = const\((\d+)\)", (FIRMWARE / "stim.py").read_text(), re.M).group(1))
+    cases += [(4095, 262143, 1), (4095, 262143, 10000), (4095, 244141, 7), (1, 1, 1), (0, 5, 3),
+              (4000, 250000, 9999), (4000, 250000, 1)]  # Vp exactly VP_LIMIT_MV: still a resistance
+    _, res, _ = run_fw(f"""
+        cases = json.loads({json.dumps(json.dumps(cases))})
+        s, board, usb, clock = make('steady', 1)
+        c = s.chans[0]
+        w = len(c.adc)
+        got = []
+        for x, uv, di in cases:
+            for k in range(w):
+                c.adc[k] = x
+            c.n_samples = w
+            c.v[{uv_word}] = uv  # stim._UV (a const: not an attribute)
+            c.vmon_k = 0
+            c.di = di
+            s._measure(c)
+            got.append((c.vp, c.rp, sc.rp_from_vp(c.vp, di) if di > 0 else 0))
+        result(got=got)
+    """)
+    got = res[0]["got"]
+    assert len(got) == len(cases)
+    assert all(rp == want for _, rp, want in got), [g for g in got if g[1] != g[2]][:5]
+    assert any(vp > 1000000 for vp, _, _ in got)  # the electrode-off value was reached
+    assert any(vp == 1000000 for vp, _, _ in got)  # and the limit itself

@@ -7,6 +7,8 @@ allocates nothing (heap-locked) and advances the report sequence number."""
 import json
 import random
 
+import hid_protocol as hp
+import sensation_core as sc
 from fw_harness import run_fw
 
 RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they go beyond 0xFFFF;
@@ -73,3 +75,31 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
     assert len(got) == len(cases_)
     bad = [k for k in range(len(cases_)) if got[k] != want[k]]
     assert not bad, f"case {cases_[bad[0]]}: {got[bad[0]]} != {want[bad[0]]}"
+
+
+def test_every_reported_mq_is_measured_against_the_pulse_delivered():
+    """The controller measures mQ on the pulse the board delivered (stim._control stores it on
+    the controller before update; review of session 16: dropping those two stores passed every
+    other test). On the realistic board the delivered current differs from the commanded one
+    (DAC steps, gain), and a held raise differs from the controller's proposal: every report of a
+    measured pulse must carry mQ = (I T - y*) 1000 / (Rp - x*), floored toward 0, of its own
+    delivered I, T and Rp (sensation_core's Eq. 2 with muldiv), in every mode that measures it."""
+    from steadytouch.protocol import Telemetry
+
+    for mode in (sc.MODE_AKHTAR, sc.MODE_FAST):
+        reports, _, _ = run_fw(f"""
+            s, board, usb, clock = make("peel", ideal=False)
+            start(s, i0=1000, t0=1000, x=-1670, y=186000, mode={mode})
+            s.run(600)
+            dump(usb)
+        """)
+        tel = [r for r in reports if isinstance(r, Telemetry)]
+        checked = 0
+        for t in tel:
+            if not t.i_ua or t.flags & hp.FLAG_CALIBRATING or t.stop or t.status & sc.ST_FAULT_MASK:
+                continue
+            n = t.i_ua * t.t_us - 186000
+            want = abs(n) * 1000 // (t.rp_ohm + 1670)
+            assert t.mq_last_fc_per_ohm == (want if n >= 0 else -want), (mode, t)
+            checked += 1
+        assert checked >= 1000, (mode, checked)  # 2 channels x 600 frames, the calibration pulses and any latch aside

@@ -75,12 +75,32 @@ def test_the_next_pulse_starts_while_the_previous_channel_is_computed(chip, cfg)
     """Channel 1's pulse rises right after channel 0's capture ends, long before
     channel 0's measure -> control -> report is done: the frame is shorter than
     the pulses plus every channel's work done one after the other."""
-    (overruns, errors, worst_loop_us, _, _), r = run(chip, cfg, 2, 50, sc.MODE_AKHTAR, 1000, 6)
+    spy = """
+from array import array
+seen = array('i', [-99] * 64)  # per call of the measure step: the capture on (its channel, -1: none) x 8 + the channel measured
+nseen = array('i', [0])
+_measure = s._f_measure
+def _spy(c):
+    k = nseen[0]
+    if k < 64:
+        seen[k] = b.capturing * 8 + c.ch
+        nseen[0] = k + 1
+    _measure(c)
+s._f_measure = _spy
+"""
+    import ast
+
+    lines = chip.exec(frame_setup(chip, cfg, 2, 50, sc.MODE_AKHTAR, 1000) + spy + FRAMES.format(frames=6)
+                      + "print(list(seen[:nseen[0]]))\n").strip().splitlines()
+    r = chip.take()
+    (overruns, errors, worst_loop_us, _, _), seen = ast.literal_eval(lines[-2]), ast.literal_eval(lines[-1])
     assert (overruns, errors) == (0, 0)
     p = r["pulses"]
     gaps = [(b["rise_ns"] - a["fall_ns"]) / US for a, b in zip(p, p[1:]) if (a["ch"], b["ch"]) == (0, 1)]
     print("gap between channel 0's fall and channel 1's rise (us):", sorted(set(gaps)))
     assert len(gaps) == 8 and max(gaps) < 300
+    # channel 0 is measured while channel 1's capture (and pulse) is on; channel 1, the last, after its own
+    assert seen == [1 * 8 + 0, -1 * 8 + 1] * 8, seen
 
 
 def test_an_error_while_a_pulse_is_delivered_lowers_its_gate_at_once(chip, cfg):
