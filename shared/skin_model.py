@@ -33,6 +33,22 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 
+# fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
+# array (one global lookup a _root call): _root's inline interpolations read the
+# differences instead of computing them (the same integers)
+_T_E1 = const(64)  # 2**x: _TAB[k], its differences at _T_E1 + k, _T_E2 + k
+_T_E2 = const(128)
+_T_G = const(192)  # log2: _TAB[_T_G + k], its differences at _T_G1 + k, _T_G2 + k
+_T_G1 = const(256)
+_T_G2 = const(320)
+_TAB = array("i", [_EXP_TAB[k] for k in range(64)])
+for _t in (_EXP_TAB, _LOG_TAB):
+    if _t is _LOG_TAB:
+        _TAB.extend(array("i", [_t[k] for k in range(64)]))
+    _TAB.extend(array("i", [_t[k + 1] - _t[k] for k in range(64)]))
+    _TAB.extend(array("i", [_t[k + 2] - _t[k + 1] - _t[k + 1] + _t[k] for k in range(64)]))
+del _t
+
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
 SKIN_BETA_MIN_Q16 = const(6554)  # 0.1
@@ -145,8 +161,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     32-bit (ARM) and 64-bit words give Python's results; the interpolation
     floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
     v = ptr32(vv)
-    e = ptr32(_EXP_TAB)
-    g2 = ptr32(_LOG_TAB)
+    e = ptr32(_TAB)  # 2**x and log2 tables, their differences
     beta = v[_V_BETA]
     rs = v[_V_RS]
     pb = (kind >> 8) & 0xFF
@@ -187,11 +202,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     n <<= 1
                     k -= 1
             eu = (n >> 16) - 64
-            ea = g2[eu]
-            eb = g2[eu + 1]
             m = n & 0xFFFF
             w = m >> 8
-            v[pb + j] = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            v[pb + j] = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
             j += 1
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
@@ -226,11 +239,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 n <<= 1
                 k -= 1
         eu = (n >> 16) - 64
-        ea = g2[eu]
-        eb = g2[eu + 1]
         m = n & 0xFFFF
         w = m >> 8
-        a = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+        a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
         ma = v[pb + _P_LI] - _L_1MA
         mc = -ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
@@ -353,10 +364,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             k = (n & 0xFFFF) >> 10
             eu = n & 0x3FF
             n = n >> 16
-            ea = e[k]
-            eb = e[k + 1]
             w = eu >> 2
-            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
             if n >= 22:
                 r = m << (n - 22)
             elif n < -2:
@@ -394,11 +403,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     n <<= 1
                     k -= 1
             eu = (n >> 16) - 64
-            ea = g2[eu]
-            eb = g2[eu + 1]
             m = n & 0xFFFF
             w = m >> 8
-            my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
             my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
             if my <= 0:
                 ok = 0
@@ -434,11 +441,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         n <<= 1
                         k -= 1
                 eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
                 m = n & 0xFFFF
                 w = m >> 8
-                lc = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                lc = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
                 lc = h2t - x - lc  # log2 T_p - x + log2 1e6 - (lc - 16 + log2 ln 2)
                 v[_V_LCTWO] = lc + _V_BIAS
                 lr = x + h2m - hmy  # ls = x + mul_q16(log2 I_p - log2 1 mA, beta)
@@ -460,13 +465,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         k = (n & 0xFFFF) >> 10
                         eu = n & 0x3FF
                         n = n >> 16
-                        ea = e[k]
-                        eb = e[k + 1]
                         w = eu >> 2
-                        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                        if n >= 22:
-                            z = m << (n - 22)
-                        elif n < -2:
+                        m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                        if n < -2:  # (n < 13 here: lz < -1)
                             z = 0
                         else:
                             z = (m + (1 << (21 - n))) >> (22 - n)
@@ -480,13 +481,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     k = (n & 0xFFFF) >> 10
                     eu = n & 0x3FF
                     n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        r = m << (n - 22)
-                    elif n < -2:
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    if n < -2:  # (n <= 20 here: lq <= _L_R_MAX)
                         r = 0
                     else:
                         r = (m + (1 << (21 - n))) >> (22 - n)
@@ -501,28 +498,17 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     k = (n & 0xFFFF) >> 10
                     eu = n & 0x3FF
                     n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        z = m << (n - 22)
-                    elif n < -2:
-                        z = 0
-                    else:
-                        z = (m + (1 << (21 - n))) >> (22 - n)
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    z = (m + (1 << (21 - n))) >> (22 - n)  # (n in [15, 19] here: lz in [-1, _L_Z12])
                     lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
                     n = lw + 0xF0000  # u = exp2q(n), inline
                     k = (n & 0xFFFF) >> 10
                     eu = n & 0x3FF
                     n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        u = m << (n - 22)
-                    elif n < -2:
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    if n < -2:  # (n <= 15 here: lw <= 0)
                         u = 0
                     else:
                         u = (m + (1 << (21 - n))) >> (22 - n)
@@ -531,13 +517,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 k = (n & 0xFFFF) >> 10
                 eu = n & 0x3FF
                 n = n >> 16
-                ea = e[k]
-                eb = e[k + 1]
                 w = eu >> 2
-                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                if n >= 22:
-                    r = m << (n - 22)
-                elif n < -2:
+                m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                if n < -2:  # (n <= 20 here: lr <= _L_R_MAX)
                     r = 0
                 else:
                     r = (m + (1 << (21 - n))) >> (22 - n)
@@ -576,11 +558,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         n <<= 1
                         k -= 1
                 eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
                 m = n & 0xFFFF
                 w = m >> 8
-                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
                 fx = my - hrl
             else:
                 # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
@@ -646,11 +626,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         n <<= 1
                         k -= 1
                 eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
                 m = n & 0xFFFF
                 w = m >> 8
-                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
                 fx = my - (x + hrl)  # hrl: 4 (1/16 pC), + log2 t_max for _K_CEIL
         if only:
             return fx
