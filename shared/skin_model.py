@@ -272,13 +272,18 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     h2m = 0
     h2t = 0
     h2r = 0
+    hk = kind  # the evaluation's branch (_K_RP takes _K_ANCHOR's)
+    hf = 1  # what g is: 1 log2 of the model's Rp less the one read, 2 log2 of Eq. 3's charge less x's, 0 the Rp itself
     if kind == _K_LAW or kind == _K_CEIL:
+        hf = 2
         hls = v[_V_LS] - _V_BIAS
         if kind == _K_LAW:  # li = log2 mE - x, lt = 2 x - log2 mE
             hli = v[_V_LME]
             hq = _L_1E6 - hli - (v[_V_LC] - _V_BIAS)
+            hli -= _L_1MA
             hrl = 0x40000
         else:  # li = x, lt = log2 t_max
+            hli = _L_1MA
             hq = v[_V_LTMAX] - (v[_V_LC] - _V_BIAS) + _L_1E6
             hrl = v[_V_LTMAX] + 0x40000
         hm1 = v[_V_MQN]
@@ -312,6 +317,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             h2r = rs - v[pb + _P_RP]
         else:  # _K_ANCHOR, _K_RP: ls = x, lc = lc0
             hq = v[pb + _P_LT] - lc0 + _L_1E6
+            if kind == _K_RP:
+                hk = _K_ANCHOR
+                hf = 0
     only = 1 if b < a else 0
     x0 = lc0 if kind == _K_LAW else NOROOT  # _K_LAW: lc0 is a guess of the root (else none)
     if not only:
@@ -337,19 +345,22 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 return NOROOT
             v[_V_WORK] += 1
         ok = 1
-        if kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
-            ma = hli - x - _L_1MA  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0)
+        if hk == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
+            ma = hli - x  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
             mc = -ma if ma < 0 else ma
             my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
             lr = hls - (-my if ma < 0 else my)  # log2 R(I)
             lq = (x << 1) + hq  # log2 (T / Cp) + log2 1e6
-        elif kind == _K_CEIL:  # x = log2 I at t_max
-            ma = x - _L_1MA  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0)
+        elif hk == _K_ANCHOR:  # (and _K_RP) x = log2 S, lc = lc0
+            lr = x - hmy
+            lq = hq
+        elif hk == _K_CEIL:  # x = log2 I at t_max
+            ma = x - hli  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 1 mA)
             mc = -ma if ma < 0 else ma
             my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
             lr = hls - (-my if ma < 0 else my)
             lq = hq
-        elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+        elif hk == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
             ma = -x if x < 0 else x  # mul_q16(x, beta - 1), inline
             mc = -hmb if hmb < 0 else hmb
             my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
@@ -359,9 +370,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 my = -my
             lr = hls + my - hmy
             lq = hq - x
-        elif kind == _K_TWO:  # p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
+        else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
             n = x  # r = exp2q(n), inline
-            k = (n & 0xFFFF) >> 10
+            k = (n >> 10) & 0x3F
             eu = n & 0x3FF
             n = n >> 16
             w = eu >> 2
@@ -448,9 +459,6 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 v[_V_LCTWO] = lc + _V_BIAS
                 lr = x + h2m - hmy  # ls = x + mul_q16(log2 I_p - log2 1 mA, beta)
                 lq = hq - lc
-        else:  # _K_ANCHOR, _K_RP: x = log2 S, lc = lc0
-            lr = x - hmy
-            lq = hq
         fx = NOROOT
         if ok:
             # the model's Rp (SkinModel.rp) for lr = log2 R(I), lq = log2 (T / Cp) + log2 1e6
@@ -462,15 +470,15 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     z = 0
                     if lz > -0x1E0000:  # z in Q.14, < 2**13
                         n = lz + 0xE0000  # z = exp2q(n), inline
-                        k = (n & 0xFFFF) >> 10
+                        k = (n >> 10) & 0x3F
                         eu = n & 0x3FF
-                        n = n >> 16
+                        n = 22 - (n >> 16)  # the right shift
                         w = eu >> 2
                         m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                        if n < -2:  # (n < 13 here: lz < -1)
+                        if n > 24:  # (2**x for x >= 13 not here: lz < -1)
                             z = 0
                         else:
-                            z = (m + (1 << (21 - n))) >> (22 - n)
+                            z = (m + (1 << (n - 1))) >> n
                     # (1 - e^-z) / z in Q.14; z, u, (z * u) >> 14 in [0, 2**13]: // 5 and // 3 are
                     # exact as * 52429 >> 18 and * 43691 >> 17 there (tests/test_skin_eval.py), // 4, // 2 shifts
                     u = 16384 - ((z * 52429) >> 18)
@@ -478,15 +486,15 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     u = 16384 - ((((z * u) >> 14) * 43691) >> 17)
                     u = 16384 - (((z * u) >> 14) >> 1)
                     n = lq  # r = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
                     m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                    if n < -2:  # (n <= 20 here: lq <= _L_R_MAX)
+                    if n > 24:  # (2**x for x > 20 not here: lq <= _L_R_MAX)
                         r = 0
                     else:
-                        r = (m + (1 << (21 - n))) >> (22 - n)
+                        r = (m + (1 << (n - 1))) >> n
                     rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
             elif lr > _L_R_MAX:
                 rp = 0x200000
@@ -495,75 +503,36 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     u = 0x8000
                 else:
                     n = lz + 0x100000  # z = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
                     m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                    z = (m + (1 << (21 - n))) >> (22 - n)  # (n in [15, 19] here: lz in [-1, _L_Z12])
+                    z = (m + (1 << (n - 1))) >> n  # (n in [3, 7] here: lz in [-1, _L_Z12])
                     lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
                     n = lw + 0xF0000  # u = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
                     m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                    if n < -2:  # (n <= 15 here: lw <= 0)
+                    if n > 24:  # (2**x for x > 15 not here: lw <= 0)
                         u = 0
                     else:
-                        u = (m + (1 << (21 - n))) >> (22 - n)
+                        u = (m + (1 << (n - 1))) >> n
                     u = 0x8000 - u  # 1 - e^-z in Q.15
                 n = lr  # r = exp2q(n), inline
-                k = (n & 0xFFFF) >> 10
+                k = (n >> 10) & 0x3F
                 eu = n & 0x3FF
-                n = n >> 16
+                n = 22 - (n >> 16)  # the right shift
                 w = eu >> 2
                 m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                if n < -2:  # (n <= 20 here: lr <= _L_R_MAX)
+                if n > 24:  # (2**x for x > 20 not here: lr <= _L_R_MAX)
                     r = 0
                 else:
-                    r = (m + (1 << (21 - n))) >> (22 - n)
+                    r = (m + (1 << (n - 1))) >> n
                 rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
-            if kind == _K_RP:
-                fx = rp
-            elif kind == _K_ANCHOR or kind == _K_PEEL or kind == _K_TWO:  # log2 of the model's Rp less the one read (hrl)
-                n = rp  # my = log2q(n), inline
-                if n < 1:
-                    n = 1
-                k = 22
-                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
-                    if n >= 0x4000000:
-                        n >>= 4
-                        k += 4
-                    if n >= 0x1000000:
-                        n >>= 2
-                        k += 2
-                    if n >= 0x800000:
-                        n >>= 1
-                        k += 1
-                else:
-                    if n < 0x80:
-                        n <<= 16
-                        k -= 16
-                    if n < 0x8000:
-                        n <<= 8
-                        k -= 8
-                    if n < 0x80000:
-                        n <<= 4
-                        k -= 4
-                    if n < 0x200000:
-                        n <<= 2
-                        k -= 2
-                    if n < 0x400000:
-                        n <<= 1
-                        k -= 1
-                eu = (n >> 16) - 64
-                m = n & 0xFFFF
-                w = m >> 8
-                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
-                fx = my - hrl
-            else:
-                # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
+            if hf == 2:  # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
                 if rp > _RP_MAX_OHM:
                     rp = _RP_MAX_OHM
                 # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
@@ -630,6 +599,44 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 w = m >> 8
                 my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
                 fx = my - (x + hrl)  # hrl: 4 (1/16 pC), + log2 t_max for _K_CEIL
+            elif hf == 1:  # _K_ANCHOR, _K_PEEL, _K_TWO: log2 of the model's Rp less the one read (hrl)
+                n = rp  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22
+                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
+                    if n >= 0x4000000:
+                        n >>= 4
+                        k += 4
+                    if n >= 0x1000000:
+                        n >>= 2
+                        k += 2
+                    if n >= 0x800000:
+                        n >>= 1
+                        k += 1
+                else:
+                    if n < 0x80:
+                        n <<= 16
+                        k -= 16
+                    if n < 0x8000:
+                        n <<= 8
+                        k -= 8
+                    if n < 0x80000:
+                        n <<= 4
+                        k -= 4
+                    if n < 0x200000:
+                        n <<= 2
+                        k -= 2
+                    if n < 0x400000:
+                        n <<= 1
+                        k -= 1
+                eu = (n >> 16) - 64
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+                fx = my - hrl
+            else:  # _K_RP
+                fx = rp
         if only:
             return fx
         if phase == 0:
