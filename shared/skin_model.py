@@ -38,7 +38,7 @@ from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 # differences instead of computing them (the same integers)
 _T_E1 = const(64)  # 2**x: _TAB[k], its differences at _T_E1 + k, _T_E2 + k
 _T_E2 = const(128)
-_T_G = const(192)  # log2: _TAB[_T_G + k], its differences at _T_G1 + k, _T_G2 + k
+_T_G = const(192)  # log2: _TAB[_T_G + k], its differences at _T_G1 + k, _T_G2 + k (negated)
 _T_G1 = const(256)
 _T_G2 = const(320)
 _TAB = array("i", [_EXP_TAB[k] for k in range(64)])
@@ -46,7 +46,8 @@ for _t in (_EXP_TAB, _LOG_TAB):
     if _t is _LOG_TAB:
         _TAB.extend(array("i", [_t[k] for k in range(64)]))
     _TAB.extend(array("i", [_t[k + 1] - _t[k] for k in range(64)]))
-    _TAB.extend(array("i", [_t[k + 2] - _t[k + 1] - _t[k + 1] + _t[k] for k in range(64)]))
+    # (log2's second differences are negative: kept negated, as a 64-bit viper reads ptr32 words unsigned)
+    _TAB.extend(array("i", [(_t[k + 2] - _t[k + 1] - _t[k + 1] + _t[k]) * (1 if _t is _EXP_TAB else -1) for k in range(64)]))
 del _t
 
 # the accepted ranges (Controller.set_skin)
@@ -204,7 +205,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             eu = (n >> 16) - 64
             m = n & 0xFFFF
             w = m >> 8
-            v[pb + j] = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+            v[pb + j] = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
             j += 1
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
@@ -241,7 +242,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         eu = (n >> 16) - 64
         m = n & 0xFFFF
         w = m >> 8
-        a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+        a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
         ma = v[pb + _P_LI] - _L_1MA
         mc = -ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
@@ -269,6 +270,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     hc26 = 0
     hc15 = 0
     hc4 = 0
+    hg = 0
     h2m = 0
     h2t = 0
     h2r = 0
@@ -296,6 +298,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         hc26 = hcap >> 26
         hc15 = hcap >> 15
         hc4 = hcap >> 4
+        hg = 1 if hm1 != 0 or hc26 < 0 else 0
     else:
         n = ob if kind == _K_TWO else pb  # the pulse whose I and T the model reads
         ma = v[n + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
@@ -416,7 +419,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             eu = (n >> 16) - 64
             m = n & 0xFFFF
             w = m >> 8
-            my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+            my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
             my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
             if my <= 0:
                 ok = 0
@@ -454,7 +457,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 eu = (n >> 16) - 64
                 m = n & 0xFFFF
                 w = m >> 8
-                lc = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+                lc = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
                 lc = h2t - x - lc  # log2 T_p - x + log2 1e6 - (lc - 16 + log2 ln 2)
                 v[_V_LCTWO] = lc + _V_BIAS
                 lr = x + h2m - hmy  # ls = x + mul_q16(log2 I_p - log2 1 mA, beta)
@@ -531,26 +534,44 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     r = 0
                 else:
                     r = (m + (1 << (n - 1))) >> n
-                rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+                if u == 0x8000:  # (the rounded product below is r itself then)
+                    rp = rs + r
+                else:
+                    rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
             if hf == 2:  # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
                 if rp > _RP_MAX_OHM:
                     rp = _RP_MAX_OHM
                 # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
-                # (a long division by 11-bit parts of mQ's numerator; its top part is 0 below 2**22)
+                # (a long division by 11-bit parts of mQ's numerator; its top part, 0 below 2**22, only if hg)
                 mb = rp + hxs
-                dq = 0
-                dr = 0
-                if hm1 != 0:
+                if hg:  # from the top part
                     my = hm1 * mb
                     dq = my // hmc
                     dr = my - dq * hmc
-                if dq > hc26:
-                    dq = hcap + 1
-                else:
-                    my = (dr << 11) + hm2 * mb
-                    dd = my // hmc
-                    dq = (dq << 11) + dd
-                    dr = my - dd * hmc
+                    if dq > hc26:
+                        dq = hcap + 1
+                    else:
+                        my = (dr << 11) + hm2 * mb
+                        dd = my // hmc
+                        dq = (dq << 11) + dd
+                        dr = my - dd * hmc
+                        if dq > hc15:
+                            dq = hcap + 1
+                        else:
+                            my = (dr << 11) + hm3 * mb
+                            dd = my // hmc
+                            dq = (dq << 11) + dd
+                            dr = my - dd * hmc
+                            if dq > hc4:
+                                dq = hcap + 1
+                            else:
+                                dq = (dq << 4) + (dr << 4) // hmc
+                                if dq > hcap:
+                                    dq = hcap + 1
+                else:  # the same from the second part (the top part's quotient and remainder 0, not above hc26)
+                    my = hm2 * mb
+                    dq = my // hmc
+                    dr = my - dq * hmc
                     if dq > hc15:
                         dq = hcap + 1
                     else:
@@ -597,7 +618,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 eu = (n >> 16) - 64
                 m = n & 0xFFFF
                 w = m >> 8
-                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
                 fx = my - (x + hrl)  # hrl: 4 (1/16 pC), + log2 t_max for _K_CEIL
             elif hf == 1:  # _K_ANCHOR, _K_PEEL, _K_TWO: log2 of the model's Rp less the one read (hrl)
                 n = rp  # my = log2q(n), inline
@@ -633,7 +654,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 eu = (n >> 16) - 64
                 m = n & 0xFFFF
                 w = m >> 8
-                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (w - 256) * e[_T_G2 + eu] + 0x10000) >> 17)
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
                 fx = my - hrl
             else:  # _K_RP
                 fx = rp

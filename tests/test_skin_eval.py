@@ -158,3 +158,16 @@ def test_the_series_multiply_shifts_are_exact_over_their_whole_range():
             assert 0 <= t <= z
             u = 16384 - t // d
             assert 0 <= u <= 16384
+
+
+def test_the_tables_differences_are_fixmaths_and_never_negative():
+    # (a 64-bit viper reads ptr32 words unsigned: the MicroPython unix port would misread a negative one)
+    from fixmath import _EXP_TAB, _LOG_TAB
+
+    t = sm._TAB
+    assert min(t) >= 0 and len(t) == 384
+    for k in range(64):
+        e, g = _EXP_TAB, _LOG_TAB
+        assert t[k] == e[k] and t[sm._T_E1 + k] == e[k + 1] - e[k] and t[sm._T_E2 + k] == e[k + 2] - 2 * e[k + 1] + e[k]
+        assert t[sm._T_G + k] == g[k] and t[sm._T_G1 + k] == g[k + 1] - g[k]
+        assert t[sm._T_G2 + k] == -(g[k + 2] - 2 * g[k + 1] + g[k])
