@@ -261,6 +261,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     hrl = 0
     hli = 0
     hmb = 0
+    hsg = 0
     hmc = 1
     hxs = 0
     hm1 = 0
@@ -271,6 +272,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     hc15 = 0
     hc4 = 0
     hg = 0
+    hyq = 0
     h2m = 0
     h2t = 0
     h2r = 0
@@ -288,6 +290,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             hli = _L_1MA
             hq = v[_V_LTMAX] - (v[_V_LC] - _V_BIAS) + _L_1E6
             hrl = v[_V_LTMAX] + 0x40000
+        hyq = v[_V_YQ4]
         hm1 = v[_V_MQN]
         hm2 = (hm1 >> 11) & 0x7FF
         hm3 = hm1 & 0x7FF
@@ -310,6 +313,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             hls = v[ob + _P_LS] - _V_BIAS
             hq = v[pb + _P_LT] - (v[_V_LC] - _V_BIAS) + _L_1E6
             hmb = beta - 0x10000
+            hsg = 1 if hmb < 0 else 0
+            if hmb < 0:
+                hmb = -hmb
         elif kind == _K_TWO:  # lc and ls from pulse p's reading
             hq = v[ob + _P_LT] + _L_1E6
             ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
@@ -349,28 +355,34 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             v[_V_WORK] += 1
         ok = 1
         if hk == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
-            ma = hli - x  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
-            mc = -ma if ma < 0 else ma
-            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-            lr = hls - (-my if ma < 0 else my)  # log2 R(I)
+            ma = hli - x  # lr = log2 R(I) = ls - mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
+            if ma < 0:
+                ma = -ma
+                lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
+            else:
+                lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
             lq = (x << 1) + hq  # log2 (T / Cp) + log2 1e6
         elif hk == _K_ANCHOR:  # (and _K_RP) x = log2 S, lc = lc0
             lr = x - hmy
             lq = hq
         elif hk == _K_CEIL:  # x = log2 I at t_max
-            ma = x - hli  # mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 1 mA)
-            mc = -ma if ma < 0 else ma
-            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-            lr = hls - (-my if ma < 0 else my)
+            ma = x - hli  # lr as _K_LAW's (hli: log2 1 mA)
+            if ma < 0:
+                ma = -ma
+                lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
+            else:
+                lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
             lq = hq
         elif hk == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-            ma = -x if x < 0 else x  # mul_q16(x, beta - 1), inline
-            mc = -hmb if hmb < 0 else hmb
-            my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
-            if x < 0:
-                my = my if hmb < 0 else -my
-            elif hmb < 0:
-                my = -my
+            if x < 0:  # my = mul_q16(x, beta - 1), inline (hmb: |beta - 1|, hsg: 1 if beta < 1)
+                ma = -x
+                my = (((ma >> 10) * hmb) >> 6) + (((ma & 0x3FF) * hmb) >> 16)
+                if hsg == 0:
+                    my = -my
+            else:
+                my = (((x >> 10) * hmb) >> 6) + (((x & 0x3FF) * hmb) >> 16)
+                if hsg != 0:
+                    my = -my
             lr = hls + my - hmy
             lq = hq - x
         else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
@@ -512,14 +524,13 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     w = eu >> 2
                     m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
                     z = (m + (1 << (n - 1))) >> n  # (n in [3, 7] here: lz in [-1, _L_Z12])
-                    lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
-                    n = lw + 0xF0000  # u = exp2q(n), inline
+                    n = 0xF0000 - ((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # u = exp2q(n), inline: log2 e^-z + 15
                     k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
                     n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
                     m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
-                    if n > 24:  # (2**x for x > 15 not here: lw <= 0)
+                    if n > 24:  # (2**x for x > 15 not here: log2 e^-z <= 0)
                         u = 0
                     else:
                         u = (m + (1 << (n - 1))) >> n
@@ -585,7 +596,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                             dq = (dq << 4) + (dr << 4) // hmc
                             if dq > hcap:
                                 dq = hcap + 1
-                n = v[_V_YQ4] + dq  # my = log2q(n), inline
+                n = hyq + dq  # my = log2q(n), inline (hyq: y*)
                 if n < 1:
                     n = 1
                 k = 22
@@ -624,33 +635,22 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 n = rp  # my = log2q(n), inline
                 if n < 1:
                     n = 1
-                k = 22
-                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
-                    if n >= 0x4000000:
-                        n >>= 4
-                        k += 4
-                    if n >= 0x1000000:
-                        n >>= 2
-                        k += 2
-                    if n >= 0x800000:
-                        n >>= 1
-                        k += 1
-                else:
-                    if n < 0x80:
-                        n <<= 16
-                        k -= 16
-                    if n < 0x8000:
-                        n <<= 8
-                        k -= 8
-                    if n < 0x80000:
-                        n <<= 4
-                        k -= 4
-                    if n < 0x200000:
-                        n <<= 2
-                        k -= 2
-                    if n < 0x400000:
-                        n <<= 1
-                        k -= 1
+                k = 22  # to [2**22, 2**23): a binary search (Rp < 2**23 here: r <= 2**20, Rs <= 5000)
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
                 eu = (n >> 16) - 64
                 m = n & 0xFFFF
                 w = m >> 8
