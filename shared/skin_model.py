@@ -33,6 +33,23 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 
+# fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
+# array (one global lookup a _root call): _root's inline interpolations read the
+# differences instead of computing them (the same integers)
+_T_E1 = const(64)  # 2**x: _TAB[k], its differences at _T_E1 + k, _T_E2 + k
+_T_E2 = const(128)
+_T_G = const(192)  # log2: _TAB[_T_G + k], its differences at _T_G1 + k, _T_G2 + k (negated)
+_T_G1 = const(256)
+_T_G2 = const(320)
+_TAB = array("i", [_EXP_TAB[k] for k in range(64)])
+for _t in (_EXP_TAB, _LOG_TAB):
+    if _t is _LOG_TAB:
+        _TAB.extend(array("i", [_t[k] for k in range(64)]))
+    _TAB.extend(array("i", [_t[k + 1] - _t[k] for k in range(64)]))
+    # (log2's second differences are negative: kept negated, as a 64-bit viper reads ptr32 words unsigned)
+    _TAB.extend(array("i", [(_t[k + 2] - _t[k + 1] - _t[k + 1] + _t[k]) * (1 if _t is _EXP_TAB else -1) for k in range(64)]))
+del _t
+
 # the accepted ranges (Controller.set_skin)
 SKIN_RS_MAX_OHM = const(5000)
 SKIN_BETA_MIN_Q16 = const(6554)  # 0.1
@@ -145,8 +162,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     32-bit (ARM) and 64-bit words give Python's results; the interpolation
     floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
     v = ptr32(vv)
-    e = ptr32(_EXP_TAB)
-    g2 = ptr32(_LOG_TAB)
+    e = ptr32(_TAB)  # 2**x and log2 tables, their differences
     beta = v[_V_BETA]
     rs = v[_V_RS]
     pb = (kind >> 8) & 0xFF
@@ -187,11 +203,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     n <<= 1
                     k -= 1
             eu = (n >> 16) - 64
-            ea = g2[eu]
-            eb = g2[eu + 1]
             m = n & 0xFFFF
             w = m >> 8
-            v[pb + j] = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            v[pb + j] = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
             j += 1
     kind = kind & 0xFF
     if kind == _K_ANCHOR:  # R(I) >= Rp - Rs: S is searched from there up to 16 times more
@@ -226,16 +240,95 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 n <<= 1
                 k -= 1
         eu = (n >> 16) - 64
-        ea = g2[eu]
-        eb = g2[eu + 1]
         m = n & 0xFFFF
         w = m >> 8
-        a = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+        a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
         ma = v[pb + _P_LI] - _L_1MA
         mc = -ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
         a += -my if ma < 0 else my
         b = a + 0x40000
+    # one search's set-up of the model's evaluation: what x does not change, read and
+    # computed once (bit for bit the sums and products the evaluation made each time).
+    # An evaluation gets lr = log2 R(I) and lq = log2 (T / Cp) + log2 1e6 from x and these:
+    # hmy = mul_q16(log2 I - log2 1 mA, beta) where I is fixed, hls / hq the parts of log2 S
+    # and of lq that x does not move, hrl the log2 Rp read (_K_ANCHOR, _K_PEEL, _K_TWO),
+    # and for _K_LAW, _K_CEIL Eq. 3's words (mQ's numerator in three 11-bit parts, its
+    # denominator, -x*, the cap and the cap's three shifts).
+    hmy = 0
+    hls = 0
+    hq = 0
+    hrl = 0
+    hli = 0
+    hmb = 0
+    hsg = 0
+    hmc = 1
+    hxs = 0
+    hm1 = 0
+    hm2 = 0
+    hm3 = 0
+    hcap = 0
+    hc26 = 0
+    hc15 = 0
+    hc4 = 0
+    hg = 0
+    hyq = 0
+    h2m = 0
+    h2t = 0
+    h2r = 0
+    hk = kind  # the evaluation's branch (_K_RP takes _K_ANCHOR's)
+    hf = 1  # what g is: 1 log2 of the model's Rp less the one read, 2 log2 of Eq. 3's charge less x's, 0 the Rp itself
+    if kind == _K_LAW or kind == _K_CEIL:
+        hf = 2
+        hls = v[_V_LS] - _V_BIAS
+        if kind == _K_LAW:  # li = log2 mE - x, lt = 2 x - log2 mE
+            hli = v[_V_LME]
+            hq = _L_1E6 - hli - (v[_V_LC] - _V_BIAS)
+            hli -= _L_1MA
+            hrl = 0x40000
+        else:  # li = x, lt = log2 t_max
+            hli = _L_1MA
+            hq = v[_V_LTMAX] - (v[_V_LC] - _V_BIAS) + _L_1E6
+            hrl = v[_V_LTMAX] + 0x40000
+        hyq = v[_V_YQ4]
+        hm1 = v[_V_MQN]
+        hm2 = (hm1 >> 11) & 0x7FF
+        hm3 = hm1 & 0x7FF
+        hm1 = hm1 >> 22
+        hxs = v[_V_XS]
+        hmc = v[_V_MQD]
+        hcap = v[_V_LCAP]
+        hc26 = hcap >> 26
+        hc15 = hcap >> 15
+        hc4 = hcap >> 4
+        hg = 1 if hm1 != 0 or hc26 < 0 else 0
+    else:
+        n = ob if kind == _K_TWO else pb  # the pulse whose I and T the model reads
+        ma = v[n + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+        mc = -ma if ma < 0 else ma
+        my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+        hmy = -my if ma < 0 else my
+        hrl = v[n + _P_RLP]
+        if kind == _K_PEEL:  # ls = log2 S of pulse o + mul_q16(x, beta - 1), lc = log2 Cp + x
+            hls = v[ob + _P_LS] - _V_BIAS
+            hq = v[pb + _P_LT] - (v[_V_LC] - _V_BIAS) + _L_1E6
+            hmb = beta - 0x10000
+            hsg = 1 if hmb < 0 else 0
+            if hmb < 0:
+                hmb = -hmb
+        elif kind == _K_TWO:  # lc and ls from pulse p's reading
+            hq = v[ob + _P_LT] + _L_1E6
+            ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
+            mc = -ma if ma < 0 else ma
+            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
+            h2m = -my if ma < 0 else my
+            h2t = v[pb + _P_LT] + _L_1E6 + 0x100000 - _L_LN2
+            h2r = rs - v[pb + _P_RP]
+        else:  # _K_ANCHOR, _K_RP: ls = x, lc = lc0
+            hq = v[pb + _P_LT] - lc0 + _L_1E6
+            if kind == _K_RP:
+                hk = _K_ANCHOR
+                hf = 0
     only = 1 if b < a else 0
     x0 = lc0 if kind == _K_LAW else NOROOT  # _K_LAW: lc0 is a guess of the root (else none)
     if not only:
@@ -260,51 +353,52 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                 v[_V_CUT] = 1
                 return NOROOT
             v[_V_WORK] += 1
-        lc = lc0
         ok = 1
-        if kind == _K_ANCHOR or kind == _K_RP:
-            ls = x
-            li = v[pb + _P_LI]
-            lt = v[pb + _P_LT]
-        elif kind == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
-            mb = beta - 0x10000  # mul_q16(x, mb), inline
-            ma = -x if x < 0 else x
-            mc = -mb if mb < 0 else mb
-            my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
-            if x < 0:
-                my = my if mb < 0 else -my
-            elif mb < 0:
-                my = -my
-            ls = v[ob + _P_LS] - _V_BIAS + my
-            lc = v[_V_LC] - _V_BIAS + x
-            li = v[pb + _P_LI]
-            lt = v[pb + _P_LT]
-        elif kind == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
-            ls = v[_V_LS] - _V_BIAS
-            lc = v[_V_LC] - _V_BIAS
-            li = v[_V_LME] - x
-            lt = (x << 1) - v[_V_LME]
-        elif kind == _K_CEIL:  # x = log2 I at t_max
-            ls = v[_V_LS] - _V_BIAS
-            lc = v[_V_LC] - _V_BIAS
-            li = x
-            lt = v[_V_LTMAX]
+        if hk == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
+            ma = hli - x  # lr = log2 R(I) = ls - mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
+            if ma < 0:
+                ma = -ma
+                lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
+            else:
+                lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
+            lq = (x << 1) + hq  # log2 (T / Cp) + log2 1e6
+        elif hk == _K_ANCHOR:  # (and _K_RP) x = log2 S, lc = lc0
+            lr = x - hmy
+            lq = hq
+        elif hk == _K_CEIL:  # x = log2 I at t_max
+            ma = x - hli  # lr as _K_LAW's (hli: log2 1 mA)
+            if ma < 0:
+                ma = -ma
+                lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
+            else:
+                lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
+            lq = hq
+        elif hk == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
+            if x < 0:  # my = mul_q16(x, beta - 1), inline (hmb: |beta - 1|, hsg: 1 if beta < 1)
+                ma = -x
+                my = (((ma >> 10) * hmb) >> 6) + (((ma & 0x3FF) * hmb) >> 16)
+                if hsg == 0:
+                    my = -my
+            else:
+                my = (((x >> 10) * hmb) >> 6) + (((x & 0x3FF) * hmb) >> 16)
+                if hsg != 0:
+                    my = -my
+            lr = hls + my - hmy
+            lq = hq - x
         else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
             n = x  # r = exp2q(n), inline
-            k = (n & 0xFFFF) >> 10
+            k = (n >> 10) & 0x3F
             eu = n & 0x3FF
             n = n >> 16
-            ea = e[k]
-            eb = e[k + 1]
             w = eu >> 2
-            m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
+            m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
             if n >= 22:
                 r = m << (n - 22)
             elif n < -2:
                 r = 0
             else:
                 r = (m + (1 << (21 - n))) >> (22 - n)
-            n = r - v[pb + _P_RP] + rs  # my = log2q(n), inline
+            n = r + h2r  # my = log2q(n), inline (h2r = Rs - Rp)
             if n < 1:
                 n = 1
             k = 22
@@ -335,15 +429,10 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     n <<= 1
                     k -= 1
             eu = (n >> 16) - 64
-            ea = g2[eu]
-            eb = g2[eu + 1]
             m = n & 0xFFFF
             w = m >> 8
-            my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
+            my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
             my = x - my  # log2 (R / (R - Rp + Rs)) = z / ln 2
-            ls = 0
-            li = v[ob + _P_LI]
-            lt = v[ob + _P_LT]
             if my <= 0:
                 ok = 0
             else:
@@ -378,64 +467,49 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         n <<= 1
                         k -= 1
                 eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
                 m = n & 0xFFFF
                 w = m >> 8
-                lc = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-                lc = v[pb + _P_LT] - x + _L_1E6 - (lc - 0x100000 + _L_LN2)
-                ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-                mc = -ma if ma < 0 else ma
-                my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-                ls = x + (-my if ma < 0 else my)
+                lc = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
+                lc = h2t - x - lc  # log2 T_p - x + log2 1e6 - (lc - 16 + log2 ln 2)
                 v[_V_LCTWO] = lc + _V_BIAS
+                lr = x + h2m - hmy  # ls = x + mul_q16(log2 I_p - log2 1 mA, beta)
+                lq = hq - lc
         fx = NOROOT
         if ok:
-            # the model's Rp (SkinModel.rp) for ls, lc, li, lt
-            ma = li - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-            mc = -ma if ma < 0 else ma
-            my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-            lr = ls - (-my if ma < 0 else my)  # log2 R(I)
-            lz = lt - lr - lc + _L_1E6  # log2 (T / tau), tau = R Cp
+            # the model's Rp (SkinModel.rp) for lr = log2 R(I), lq = log2 (T / Cp) + log2 1e6
+            lz = lq - lr  # log2 (T / tau), tau = R Cp
             if lz < -0x10000:  # z < 1/2: R (1 - e^-z) = (T / Cp) (1 - e^-z) / z, by its series
-                lrz = lt - lc + _L_1E6  # log2 (R z) = log2 (T / Cp), ohm
-                if lrz > _L_R_MAX:
+                if lq > _L_R_MAX:  # lq = log2 (R z) = log2 (T / Cp), ohm
                     rp = 0x200000
                 else:
                     z = 0
                     if lz > -0x1E0000:  # z in Q.14, < 2**13
                         n = lz + 0xE0000  # z = exp2q(n), inline
-                        k = (n & 0xFFFF) >> 10
+                        k = (n >> 10) & 0x3F
                         eu = n & 0x3FF
-                        n = n >> 16
-                        ea = e[k]
-                        eb = e[k + 1]
+                        n = 22 - (n >> 16)  # the right shift
                         w = eu >> 2
-                        m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                        if n >= 22:
-                            z = m << (n - 22)
-                        elif n < -2:
+                        m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                        if n > 24:  # (2**x for x >= 13 not here: lz < -1)
                             z = 0
                         else:
-                            z = (m + (1 << (21 - n))) >> (22 - n)
-                    u = 16384 - z // 5
-                    u = 16384 - ((z * u) >> 14) // 4
-                    u = 16384 - ((z * u) >> 14) // 3
-                    u = 16384 - ((z * u) >> 14) // 2  # (1 - e^-z) / z in Q.14
-                    n = lrz  # r = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                            z = (m + (1 << (n - 1))) >> n
+                    # (1 - e^-z) / z in Q.14; z, u, (z * u) >> 14 in [0, 2**13]: // 5 and // 3 are
+                    # exact as * 52429 >> 18 and * 43691 >> 17 there (tests/test_skin_eval.py), // 4, // 2 shifts
+                    u = 16384 - ((z * 52429) >> 18)
+                    u = 16384 - (((z * u) >> 14) >> 2)
+                    u = 16384 - ((((z * u) >> 14) * 43691) >> 17)
+                    u = 16384 - (((z * u) >> 14) >> 1)
+                    n = lq  # r = exp2q(n), inline
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        r = m << (n - 22)
-                    elif n < -2:
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    if n > 24:  # (2**x for x > 20 not here: lq <= _L_R_MAX)
                         r = 0
                     else:
-                        r = (m + (1 << (21 - n))) >> (22 - n)
+                        r = (m + (1 << (n - 1))) >> n
                     rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 8) >> 4)  # rounded
             elif lr > _L_R_MAX:
                 rp = 0x200000
@@ -444,123 +518,85 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                     u = 0x8000
                 else:
                     n = lz + 0x100000  # z = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        z = m << (n - 22)
-                    elif n < -2:
-                        z = 0
-                    else:
-                        z = (m + (1 << (21 - n))) >> (22 - n)
-                    lw = -((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # log2 e^-z
-                    n = lw + 0xF0000  # u = exp2q(n), inline
-                    k = (n & 0xFFFF) >> 10
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    z = (m + (1 << (n - 1))) >> n  # (n in [3, 7] here: lz in [-1, _L_Z12])
+                    n = 0xF0000 - ((((z >> 8) * _L_E) >> 8) + (((z & 0xFF) * _L_E) >> 16))  # u = exp2q(n), inline: log2 e^-z + 15
+                    k = (n >> 10) & 0x3F
                     eu = n & 0x3FF
-                    n = n >> 16
-                    ea = e[k]
-                    eb = e[k + 1]
+                    n = 22 - (n >> 16)  # the right shift
                     w = eu >> 2
-                    m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                    if n >= 22:
-                        u = m << (n - 22)
-                    elif n < -2:
+                    m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                    if n > 24:  # (2**x for x > 15 not here: log2 e^-z <= 0)
                         u = 0
                     else:
-                        u = (m + (1 << (21 - n))) >> (22 - n)
+                        u = (m + (1 << (n - 1))) >> n
                     u = 0x8000 - u  # 1 - e^-z in Q.15
                 n = lr  # r = exp2q(n), inline
-                k = (n & 0xFFFF) >> 10
+                k = (n >> 10) & 0x3F
                 eu = n & 0x3FF
-                n = n >> 16
-                ea = e[k]
-                eb = e[k + 1]
+                n = 22 - (n >> 16)  # the right shift
                 w = eu >> 2
-                m = ea + (((eb - ea) * eu + 512) >> 10) + ((w * (w - 256) * (e[k + 2] - eb - eb + ea) + 0x10000) >> 17)
-                if n >= 22:
-                    r = m << (n - 22)
-                elif n < -2:
+                m = e[k] + ((e[_T_E1 + k] * eu + 512) >> 10) + ((w * (w - 256) * e[_T_E2 + k] + 0x10000) >> 17)
+                if n > 24:  # (2**x for x > 20 not here: lr <= _L_R_MAX)
                     r = 0
                 else:
-                    r = (m + (1 << (21 - n))) >> (22 - n)
-                rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
-            if kind == _K_RP:
-                fx = rp
-            elif kind == _K_ANCHOR or kind == _K_PEEL or kind == _K_TWO:  # log2 of the model's Rp less the one read
-                n = rp  # my = log2q(n), inline
-                if n < 1:
-                    n = 1
-                k = 22
-                if n >= 0x800000:  # to [2**22, 2**23): a binary search (a shift loop is ~0.6 us a bit on the chip)
-                    if n >= 0x4000000:
-                        n >>= 4
-                        k += 4
-                    if n >= 0x1000000:
-                        n >>= 2
-                        k += 2
-                    if n >= 0x800000:
-                        n >>= 1
-                        k += 1
+                    r = (m + (1 << (n - 1))) >> n
+                if u == 0x8000:  # (the rounded product below is r itself then)
+                    rp = rs + r
                 else:
-                    if n < 0x80:
-                        n <<= 16
-                        k -= 16
-                    if n < 0x8000:
-                        n <<= 8
-                        k -= 8
-                    if n < 0x80000:
-                        n <<= 4
-                        k -= 4
-                    if n < 0x200000:
-                        n <<= 2
-                        k -= 2
-                    if n < 0x400000:
-                        n <<= 1
-                        k -= 1
-                eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
-                m = n & 0xFFFF
-                w = m >> 8
-                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-                fx = my - (v[ob + _P_RLP] if kind == _K_TWO else v[pb + _P_RLP])
-            else:
-                # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
+                    rp = rs + (((r >> 10) * u + (((r & 0x3FF) * u) >> 10) + 16) >> 5)  # rounded
+            if hf == 2:  # _K_LAW, _K_CEIL: log2 of the line's charge L(Rp) less the pulse's (1/16 pC)
                 if rp > _RP_MAX_OHM:
                     rp = _RP_MAX_OHM
                 # Eq. 3 (the controller's _line): y* + muldiv(mQ num, Rp - x*, mQ den, 4, q_max - y*), inline
-                ma = v[_V_MQN]
-                mb = rp + v[_V_XS]
-                mc = v[_V_MQD]
-                cap = v[_V_LCAP]
-                my = (ma >> 22) * mb
-                dq = my // mc
-                dr = my - dq * mc
-                if dq > cap >> 26:
-                    dq = cap + 1
-                else:
-                    my = (dr << 11) + ((ma >> 11) & 0x7FF) * mb
-                    dd = my // mc
-                    dq = (dq << 11) + dd
-                    dr = my - dd * mc
-                    if dq > cap >> 15:
-                        dq = cap + 1
+                # (a long division by 11-bit parts of mQ's numerator; its top part, 0 below 2**22, only if hg)
+                mb = rp + hxs
+                if hg:  # from the top part
+                    my = hm1 * mb
+                    dq = my // hmc
+                    dr = my - dq * hmc
+                    if dq > hc26:
+                        dq = hcap + 1
                     else:
-                        my = (dr << 11) + (ma & 0x7FF) * mb
-                        dd = my // mc
+                        my = (dr << 11) + hm2 * mb
+                        dd = my // hmc
                         dq = (dq << 11) + dd
-                        dr = my - dd * mc
-                        if dq > cap >> 4:
-                            dq = cap + 1
+                        dr = my - dd * hmc
+                        if dq > hc15:
+                            dq = hcap + 1
                         else:
-                            dq = (dq << 4) + (dr << 4) // mc
-                            if dq > cap:
-                                dq = cap + 1
-                n = v[_V_YQ4] + dq  # my = log2q(n), inline
+                            my = (dr << 11) + hm3 * mb
+                            dd = my // hmc
+                            dq = (dq << 11) + dd
+                            dr = my - dd * hmc
+                            if dq > hc4:
+                                dq = hcap + 1
+                            else:
+                                dq = (dq << 4) + (dr << 4) // hmc
+                                if dq > hcap:
+                                    dq = hcap + 1
+                else:  # the same from the second part (the top part's quotient and remainder 0, not above hc26)
+                    my = hm2 * mb
+                    dq = my // hmc
+                    dr = my - dq * hmc
+                    if dq > hc15:
+                        dq = hcap + 1
+                    else:
+                        my = (dr << 11) + hm3 * mb
+                        dd = my // hmc
+                        dq = (dq << 11) + dd
+                        dr = my - dd * hmc
+                        if dq > hc4:
+                            dq = hcap + 1
+                        else:
+                            dq = (dq << 4) + (dr << 4) // hmc
+                            if dq > hcap:
+                                dq = hcap + 1
+                n = hyq + dq  # my = log2q(n), inline (hyq: y*)
                 if n < 1:
                     n = 1
                 k = 22
@@ -591,12 +627,37 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
                         n <<= 1
                         k -= 1
                 eu = (n >> 16) - 64
-                ea = g2[eu]
-                eb = g2[eu + 1]
                 m = n & 0xFFFF
                 w = m >> 8
-                my = (k << 16) + ea + (((eb - ea) * m + 0x8000) >> 16) + ((w * (w - 256) * (g2[eu + 2] - eb - eb + ea) + 0x10000) >> 17)
-                fx = my - (x + 0x40000 if kind == _K_LAW else x + v[_V_LTMAX] + 0x40000)
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
+                fx = my - (x + hrl)  # hrl: 4 (1/16 pC), + log2 t_max for _K_CEIL
+            elif hf == 1:  # _K_ANCHOR, _K_PEEL, _K_TWO: log2 of the model's Rp less the one read (hrl)
+                n = rp  # my = log2q(n), inline
+                if n < 1:
+                    n = 1
+                k = 22  # to [2**22, 2**23): a binary search (Rp < 2**23 here: r <= 2**20, Rs <= 5000)
+                if n < 0x80:
+                    n <<= 16
+                    k -= 16
+                if n < 0x8000:
+                    n <<= 8
+                    k -= 8
+                if n < 0x80000:
+                    n <<= 4
+                    k -= 4
+                if n < 0x200000:
+                    n <<= 2
+                    k -= 2
+                if n < 0x400000:
+                    n <<= 1
+                    k -= 1
+                eu = (n >> 16) - 64
+                m = n & 0xFFFF
+                w = m >> 8
+                my = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
+                fx = my - hrl
+            else:  # _K_RP
+                fx = rp
         if only:
             return fx
         if phase == 0:
