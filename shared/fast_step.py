@@ -2,7 +2,7 @@
 
 The paper's law is the fixed-point iteration Q(k+1) = L(Rp(Q_k)). MODE_FAST reaches
 the same fixed point sooner: a Newton step on the loop linearised around the last
-pulse (newton), a prediction of a falling drift (drift), the law solved on a skin
+pulse (newton), a prediction of a falling drift (fast_pulse's head), the law solved on a skin
 model when one is set (skin_model.SkinModel.jump), and a correction when the paper's
 step enters the duration ceiling (fast_pulse). It then goes through the very same
 Eq. 4 and bounds as the paper's mode (Controller._from_q).
@@ -103,7 +103,31 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     t_k = int(c.t_us)
     s_k = int(c.status)
     ceiling = s_k & _ST_T_MAX
-    rp_at = int(drift(c, q_k, rp_ohm))
+    # the drift (inline: a call is ~8 us on the chip): the Rp the law is applied to under a falling
+    # drift (sweat, gel soaking in), else rp_ohm. Rp's change since the last pulse less what our own
+    # step explains (with the least elasticity) is the skin moving; when it has fallen two pulses
+    # running, the law is applied to Rp one pulse ahead (the smaller of the two falls, at most Rp/16).
+    # Only falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm.
+    rp_at = rp_ohm
+    d_now = 0
+    kb = ptr32(c._k)  # c.before's words
+    if kb[_K_B + _B_CLEAN] != 0 and q_k > 0:
+        dq = q_k - kb[_K_B + _B_Q]
+        adq = dq if dq >= 0 else 0 - dq
+        if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
+            f = int(frac12(adq, q_k))  # |dQ|/Q in Q.12, < 128
+            x = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)
+            e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic: e Rp |dQ| / Q
+            d_now = rp_ohm - kb[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
+    d_prev = int(c.drift_ohm)
+    c.drift_ohm = d_now
+    if d_now < 0 and d_prev < 0:
+        d = d_now if d_now > d_prev else d_prev  # the smaller fall
+        if 0 - d >= (rp_ohm >> 9):  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
+            if 0 - d > (rp_ohm >> 4):
+                d = 0 - (rp_ohm >> 4)
+            if rp_ohm + d >= _RP_MIN_OHM:
+                rp_at = rp_ohm + d
     if rp_at != rp_ohm:
         qf = int(line(c, rp_at))
     model = c.skin
@@ -253,35 +277,3 @@ def newton(c, qf: int, q_k: int, rp_ohm: int) -> int:
     if q_new <= 0:
         return qf
     return q_new
-
-
-@micropython.viper
-def drift(c, q_k: int, rp_ohm: int) -> int:
-    """The Rp the law is applied to under a falling drift (sweat, gel soaking in), else
-    rp_ohm. Rp's change since the last pulse less what our own step explains (with the
-    least elasticity) is the skin moving; when it has fallen two pulses running, the law
-    is applied to Rp one pulse ahead (the smaller of the two falls, at most Rp/16). Only
-    falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm."""
-    d_now = 0
-    k = ptr32(c._k)  # c.before's words
-    if k[_K_B + _B_CLEAN] != 0 and q_k > 0:
-        dq = q_k - k[_K_B + _B_Q]
-        adq = dq if dq >= 0 else 0 - dq
-        if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
-            f = int(frac12(adq, q_k))  # |dQ|/Q in Q.12, < 128
-            x = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)
-            e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic: e Rp |dQ| / Q
-            d_now = rp_ohm - k[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
-    d_prev = int(c.drift_ohm)
-    c.drift_ohm = d_now
-    if d_now >= 0 or d_prev >= 0:
-        return rp_ohm
-    d = d_now if d_now > d_prev else d_prev  # the smaller fall
-    if 0 - d < (rp_ohm >> 9):  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
-        return rp_ohm
-    if 0 - d > (rp_ohm >> 4):
-        d = 0 - (rp_ohm >> 4)
-    rp2 = rp_ohm + d
-    if rp2 < _RP_MIN_OHM:
-        return rp_ohm
-    return rp2

@@ -179,7 +179,6 @@ def _from_q(c, qf: int) -> int:
         st = ST_Q_MAX
     # Eq. 4: I = 16 mE / qf (rounded), T = Q^2 / mE: with v = Q / i0 (= sqrt(T * t0)) in
     # Q.16, T = v^2 / t0 (rounded); _T_SAT if v >= 2**13 (T >= 2**26 / t0 > T_LIMIT_US)
-    i = int(div2((k[_K_ME_HI] << 4) + (k[_K_ME_LO] >> 11), (k[_K_ME_LO] << 4) & _M15, qf, 1))
     i0 = k[_K_I0]
     t0 = k[_K_T0]
     q1 = qf // i0
@@ -192,9 +191,8 @@ def _from_q(c, qf: int) -> int:
         t = (sq + (t0 << 2)) // (t0 << 3)
     t_min = k[_K_TMIN]
     t_max = k[_K_TMAX]
-    # duration bounds. Ceiling (ours: the paper has none): keep the charge on
-    # the Q-Rp line at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so
-    # I*T is within I/2 pC of Q (mE then above its value).
+    # duration bounds. Ceiling (ours: the paper has none): keep the charge on the Q-Rp line
+    # at T <= t_max: I = ceil(Q / t_max), T = round(Q / I), so I*T is within I/2 pC of Q (mE then above).
     # Floor (Discussion: a sensation threshold): hold T, solve I from mE.
     if t > t_max:
         i = (qf + (t_max << 4) - 1) // (t_max << 4)
@@ -211,6 +209,8 @@ def _from_q(c, qf: int) -> int:
         t = t_min
         i = int(isqrt_round(div_small(k[_K_ME_HI], k[_K_ME_LO], t_min)))
         st |= ST_T_MIN
+    else:  # I from mE only where T is within its bounds (each bound sets its own: a call spared)
+        i = int(div2((k[_K_ME_HI] << 4) + (k[_K_ME_LO] >> 11), (k[_K_ME_LO] << 4) & _M15, qf, 1))
     # current bounds: floor holds I and solves T; ceiling is safety (no mE)
     i_min = k[_K_IMIN]
     i_max = k[_K_IMAX]

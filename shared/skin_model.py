@@ -706,10 +706,13 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             den >>= 1
             num >>= 1
         if den >= 256 and w <= 0x40000:
-            t = num * (w >> 9)
-            q = t // den
-            t = ((t - q * den) << 9) + num * (w & 0x1FF)
-            x = a + (q << 9) + t // den
+            if w < 0x1000:  # num * w < 2**30 (num <= den < 2**18): one division, the same floor
+                x = a + (num * w) // den
+            else:  # floor(num * w / den) in two 9-bit parts of w
+                t = num * (w >> 9)
+                q = t // den
+                t = ((t - q * den) << 9) + num * (w & 0x1FF)
+                x = a + (q << 9) + t // den
         else:
             x = a + (w >> 1)
         if x <= a:
