@@ -82,15 +82,22 @@ def _device_s(rows_or_samples, i_from, i_to, t_col=None):
     return ((tb - ta) % (1 << 30)) / 1e6
 
 
-def test_record_lsl_equals_the_csv_and_marks_arm_stop_disarm(lsl, tmp_path):
-    url = f"sim://off?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
-    csv = tmp_path / "run.csv"
-    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", "6.5", "--device", url)
+def _record_late(lsl, url, csv, seconds):
+    """`record --lsl --arm` of url into csv for `seconds`, its recorder late (_pull_late): the
+    process, what the recorder pulled (xml, samples, stamps, markers), its stdout and stderr."""
+    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", seconds, "--device", url)
     try:
-        xml, samples, stamps, markers = _pull_late(lsl, f"steadytouch-{url}", p)
+        pulled = _pull_late(lsl, f"steadytouch-{url}", p)
         out, err = p.communicate(timeout=30)
     finally:
         p.kill() if p.poll() is None else None
+    return p, pulled, out, err
+
+
+def test_record_lsl_equals_the_csv_and_marks_arm_stop_disarm(lsl, tmp_path):
+    url = f"sim://off?channels=2&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
+    csv = tmp_path / "run.csv"
+    p, (xml, samples, stamps, markers), out, err = _record_late(lsl, url, csv, "6.5")
     assert p.returncode == 0, err
     meta, rows = read_recording(csv)
     assert meta["serial"] == url
@@ -135,12 +142,7 @@ def test_record_lsl_keeps_every_row_when_the_simulated_device_ends_first(lsl, tm
     missing, and the closing clock marker still goes out."""
     url = f"sim://steady?channels=2&frames=100&seed={uuid.uuid4().int % 100000}&auto={AUTO}"
     csv = tmp_path / "run.csv"
-    p = steadytouch("record", str(csv), "--lsl", "--lsl-wait", "20", "--arm", "--seconds", "30", "--device", url)
-    try:
-        xml, samples, stamps, markers = _pull_late(lsl, f"steadytouch-{url}", p)
-        out, err = p.communicate(timeout=30)
-    finally:
-        p.kill() if p.poll() is None else None
+    p, (xml, samples, stamps, markers), out, err = _record_late(lsl, url, csv, "30")
     assert p.returncode == 1, (out, err)
     assert err.strip().splitlines() == [err.strip()] and "Traceback" not in err
     assert "device lost: the simulated device stopped (exit code 0)" in err and "frames=N" in err, err
