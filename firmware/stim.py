@@ -58,7 +58,8 @@ _C_STOP_OFF = const(3)
 _C_STOP_RP_FAULT = const(4)
 _C_VP_LIMIT_MV = const(1000000)
 _C_RP_OVER = const(1073741823)
-if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
+if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US
+        or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
         or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
@@ -394,8 +395,9 @@ class Stimulator:
     def frame(self, now):
         """One frame. Every channel in turn: its pulse (hard limits checked right
         before the gate opens), then measure -> supervise -> control -> output ->
-        report (_measure, _control: the supervisor's rules first, _output, _encode_telemetry). On a board that delivers pulses by itself (the rp2: PIO gate,
-        ADC -> DMA capture) channel k's pulse runs while the CPU does channel
+        report (_measure, _control: the supervisor's rules first, _output,
+        _encode_telemetry). On a board that delivers pulses by itself (the rp2: PIO
+        gate, ADC -> DMA capture) channel k's pulse runs while the CPU does channel
         k-1's work. Then the reports go out and the host's commands are served."""
         board = self.board
         self.frame_t = now & 0x3FFFFFFF
@@ -686,7 +688,8 @@ class Stimulator:
         if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
         seq = int(self.seq)
-        p32[0] = 0x01 | (cv[_CH] << 8) | (int(ctl.mode) << 16) | (cv[_STOP] << 24)  # REP_TELEMETRY, O_CH, O_MODE, O_STOP
+        # REP_TELEMETRY, O_CH, O_MODE, O_STOP
+        p32[0] = 0x01 | (cv[_CH] << 8) | (int(ctl.mode) << 16) | (cv[_STOP] << 24)
         p32[1] = seq  # O_SEQ 4
         p32[2] = int(self.frame_t)  # O_TIME 8
         p32[3] = (di & 0xFFFF) | ((cv[_DT] & 0xFFFF) << 16)  # O_I 12, O_T 14

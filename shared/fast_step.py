@@ -117,7 +117,8 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
         if adq < (q_k >> 5):  # a small step of our own (a large one is a jump: not drift)
             f = int(frac12(adq, q_k))  # |dQ|/Q in Q.12, < 128
             x = (rp_ohm >> 12) * f + (((rp_ohm & 0xFFF) * f) >> 12)
-            e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic: e Rp |dQ| / Q
+            # least_elastic: e Rp |dQ| / Q
+            e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
             d_now = rp_ohm - kb[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
     d_prev = int(c.drift_ohm)
     c.drift_ohm = d_now
