@@ -58,6 +58,11 @@ _C_STOP_OFF = const(3)
 _C_STOP_RP_FAULT = const(4)
 _C_VP_LIMIT_MV = const(1000000)
 _C_RP_OVER = const(1073741823)
+_C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_core._K_I, _K_T, _K_ST:
+_C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
+_C_K_ST = const(24)
+_C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
+_C_W_BIAS = const(0x20000000)
 if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US
         or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
@@ -74,6 +79,11 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
+_c = sc.Controller(1, 2, 1, 2, 4)  # the controller's words as _control and the report read them
+_c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
+if (_c._k[_C_K_I], _c._k[_C_K_T], _c._k[_C_K_ST], _c._k[_C_K_MQL]) != (11, 12, 13, _C_W_BIAS - 14):
+    raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_W_BIAS")
+del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
 
@@ -597,13 +607,15 @@ class Stimulator:
             ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
             v[_CALIB] = 0
         else:
-            ctl.i_ua = v[_DI]  # ctl.delivered, inline: a held proposal was not what was measured
-            ctl.t_us = v[_DT]
+            k = ptr32(ctl._k)
+            k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us): a held proposal was not what was measured
+            k[_C_K_T] = v[_DT]
             if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
-        ni = int(ctl.i_ua)
-        nt = int(ctl.t_us)
+        k = ptr32(ctl._k)
+        ni = k[_C_K_I]  # (ctl.i_ua, ctl.t_us)
+        nt = k[_C_K_T]
         q = ni * nt
         if q <= v[_I] * v[_T]:
             v[_HELD] = 0
@@ -697,11 +709,12 @@ class Stimulator:
         p32[5] = cv[_RP]  # O_RP 20
         p32[6] = int(ctl.me_ua2ms)  # O_ME 24
         p32[7] = int(ctl.mq_target_fc_per_ohm)  # O_MQT 28
-        p32[8] = int(ctl.mq_last_fc_per_ohm) if di else 0  # O_MQL 32
-        p32[9] = (int(ctl.status) & 0xFFFF) | ((int(ctl.i_ua) & 0xFFFF) << 16)  # O_STATUS 36, O_NEXT_I 38
+        k = ptr32(ctl._k)  # ctl.mq_last_fc_per_ohm (+ bias), .status, .i_ua, .t_us: its words
+        p32[8] = (k[_C_K_MQL] - _C_W_BIAS) if di else 0  # O_MQL 32
+        p32[9] = (k[_C_K_ST] & 0xFFFF) | ((k[_C_K_I] & 0xFFFF) << 16)  # O_STATUS 36, O_NEXT_I 38
         v = int(self.overruns)  # hp.sat16 (run() changes both between frames: the same in every
         v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)  # report of a frame)
-        p32[10] = (int(ctl.t_us) & 0xFFFF) | (v << 16)  # O_NEXT_T 40, O_OVERRUNS 42
+        p32[10] = (k[_C_K_T] & 0xFFFF) | (v << 16)  # O_NEXT_T 40, O_OVERRUNS 42
         v = int(self.loop_us)  # the previous frame's
         v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
         p32[11] = v | (f << 16) | (int(self.rate_hz) << 24)  # O_LOOP 44, O_FLAGS 46, O_RATE 47

@@ -64,6 +64,13 @@ _G_LOWER_MAX = const(3072)  # 0.75: the largest G the lowering stretch sets (1/(
 # controller's int array c._k from _K_B on (sensation_core._K_B): the viper code reads and
 # writes them by ptr32; Pulse gives them names
 _K_B = const(17)
+_K_I = const(22)  # c.i_ua, c.t_us, c.status: words of c._k (properties of the Controller)
+_K_T = const(23)
+_K_ST = const(24)
+_K_DR = const(27)  # c.drift_ohm + _W_BIAS, c.fast_jumps, c.model_cuts (words of c._k too)
+_K_FJ = const(28)
+_K_MC = const(30)
+_W_BIAS = const(0x20000000)
 _B_I = const(0)  # i_ua
 _B_T = const(1)  # t_us
 _B_Q = const(2)  # q_pc = i_ua * t_us
@@ -99,9 +106,10 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     corrected when it enters the ceiling from a higher current. line(c, rp) is Eq. 3,
     from_q(c, qf) Eq. 4 with the bounds. Returns the status. (viper: machine integers,
     every value below 2**30; what the calls return is read with int().)"""
-    i_k = int(c.i_ua)  # the measured pulse (from_q reads it: restored for a retry)
-    t_k = int(c.t_us)
-    s_k = int(c.status)
+    kb = ptr32(c._k)  # c.i_ua, c.t_us, c.status and c.before's words
+    i_k = kb[_K_I]  # the measured pulse (from_q reads it: restored for a retry)
+    t_k = kb[_K_T]
+    s_k = kb[_K_ST]
     ceiling = s_k & _ST_T_MAX
     # the drift (inline: a call is ~8 us on the chip): the Rp the law is applied to under a falling
     # drift (sweat, gel soaking in), else rp_ohm. Rp's change since the last pulse less what our own
@@ -110,7 +118,6 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     # Only falls: a rising drift would raise the charge on a prediction. Sets c.drift_ohm.
     rp_at = rp_ohm
     d_now = 0
-    kb = ptr32(c._k)  # c.before's words
     if kb[_K_B + _B_CLEAN] != 0 and q_k > 0:
         dq = q_k - kb[_K_B + _B_Q]
         adq = dq if dq >= 0 else 0 - dq
@@ -120,8 +127,8 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             # least_elastic: e Rp |dQ| / Q
             e = (x >> 12) * FAST_ELASTICITY_Q12 + (((x & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)
             d_now = rp_ohm - kb[_K_B + _B_RP] - (e if dq >= 0 else 0 - e)
-    d_prev = int(c.drift_ohm)
-    c.drift_ohm = d_now
+    d_prev = kb[_K_DR] - _W_BIAS  # (c.drift_ohm)
+    kb[_K_DR] = d_now + _W_BIAS
     if d_now < 0 and d_prev < 0:
         d = d_now if d_now > d_prev else d_prev  # the smaller fall
         if 0 - d >= (rp_ohm >> 9):  # below 0.2 %: the quantisation of Rp and of the pulse, not drift
@@ -143,28 +150,28 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c._k, from_q))  # (c._k: c.before's words)
             if st >= 0:
                 return st
-            c.i_ua = i_k  # the measured pulse back (three stores: cheaper than a call)
-            c.t_us = t_k
-            c.status = s_k
+            kb[_K_I] = i_k  # the measured pulse back (three stores: cheaper than a call)
+            kb[_K_T] = t_k
+            kb[_K_ST] = s_k
             if st == -2:  # the model ran out of its work per pulse: the paper's step when
-                n = int(c.model_cuts)  # it lowers the charge, else the charge held
+                n = kb[_K_MC]  # (c.model_cuts) it lowers the charge, else the charge held
                 if n < _SAT30:
-                    c.model_cuts = n + 1
+                    kb[_K_MC] = n + 1
                 base = q_k << 4
                 return int(from_q(c, qf if qf < base else base))
         q_new = int(newton(c, qf, q_k, rp_ohm))
         if q_new != qf:
             st = int(from_q(c, q_new))
             if (st & _ST_T_MAX) == ceiling:
-                n = int(c.fast_jumps)
+                n = kb[_K_FJ]  # (c.fast_jumps)
                 if n < _SAT30:  # a counter must never become a long int
-                    c.fast_jumps = n + 1
+                    kb[_K_FJ] = n + 1
                 return st
-            c.i_ua = i_k
-            c.t_us = t_k
-            c.status = s_k
+            kb[_K_I] = i_k
+            kb[_K_T] = t_k
+            kb[_K_ST] = s_k
     st = int(from_q(c, qf))
-    i = int(c.i_ua)
+    i = kb[_K_I]
     if st == _ST_T_MAX and ceiling == 0 and i < i_k:
         # entering the ceiling from the mE curve at a lower current I: Rp will rise
         # at least by the least elasticity, Rp (1 + e (I_k - I) / I); one more step
@@ -175,9 +182,9 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             dr = int(muldiv(rp_ohm, i_k - i, i, 0, _MQ_CAP))
         rp2 = rp_ohm + (dr >> 12) * FAST_ELASTICITY_Q12 + (((dr & 0xFFF) * FAST_ELASTICITY_Q12) >> 12)  # least_elastic
         if rp2 <= _RP_MAX_OHM:
-            c.i_ua = i_k
-            c.t_us = t_k
-            c.status = s_k
+            kb[_K_I] = i_k
+            kb[_K_T] = t_k
+            kb[_K_ST] = s_k
             st = int(from_q(c, int(line(c, rp2))))
     return st
 
@@ -217,7 +224,7 @@ def newton(c, qf: int, q_k: int, rp_ohm: int) -> int:
                 if g > 3891 or g < -6144:  # G outside [-1.5, 0.95]: no stable fixed point nearby
                     g = _NO_G
     if g == _NO_G:  # the prior: |G| >= elasticity * mQ Rp / Q
-        s = int(c.status)
+        s = k[_K_ST]  # (c.status)
         ceiling = 1 if s == _ST_T_MAX else 0  # the pulse just measured was held at t_max
         if s != _ST_OK and ceiling == 0:  # another bound: no model of that path
             return qf

@@ -17,6 +17,8 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         def viper(f):
             return f
 
+        native = viper
+
     def const(x):
         return x
 
@@ -60,6 +62,18 @@ def muldiv(a: int, b: int, c: int, fbits: int, cap: int) -> int:
         if q > cap:
             return cap + 1
     return q
+
+
+@micropython.native
+def rp_from_vp(vp_mv, i_ua):
+    """Peak resistance in ohm from peak voltage (mV) and current (uA), rounded (sensation_core's API).
+    Returns RP_INVALID (-1) for i_ua <= 0 or vp_mv < 0 (update() faults on it) and RP_OVER
+    (2**30 - 1) for vp_mv > VP_LIMIT_MV (10**6; update() reads it as electrode off)."""
+    if i_ua <= 0 or vp_mv < 0:
+        return -1
+    if vp_mv > 1000000:
+        return 0x3FFFFFFF
+    return (vp_mv * 1000 + (i_ua >> 1)) // i_ua
 
 
 @micropython.viper

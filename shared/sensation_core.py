@@ -35,7 +35,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
-from fixmath import div2, div_small, isqrt_round, log2q, muldiv
+from fixmath import div2, div_small, isqrt_round, log2q, muldiv, rp_from_vp, word  # noqa: F401 (rp_from_vp: the API)
 from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_*: the public API)
     FAST_MODEL_WORK_MAX,
     FAST_MODEL_RAISE_LOG2,
@@ -109,25 +109,24 @@ _K_YQ4 = const(14)
 _K_LCAP = const(15)
 _K_RP = const(16)  # update's Rp, echoed
 _K_B = const(17)  # 5 words: the pulse before the last, c.before (fast_step.Pulse: I, T, Q, Rp, clean)
-_K_N = const(22)
+_K_I = const(22)  # the next pulse and its status: c.i_ua, c.t_us, c.status (properties over the words:
+_K_T = const(23)  # on the chip a plain attribute stored on an instance of a class with a property costs
+_K_ST = const(24)  # ~25 us, a word nothing, so every attribute update() and MODE_FAST write is one)
+_K_RPG = const(25)  # rp_ohm, the Rp last given to update() (_K_RPF 1: past +-2**30, in c._rp_big)
+_K_MQL = const(26)  # mq_last_fc_per_ohm + _W_BIAS, drift_ohm + _W_BIAS (signed: a 64-bit viper reads unsigned)
+_K_DR = const(27)
+_K_FJ = const(28)  # fast_jumps, model_jumps, model_cuts
+_K_MJ = const(29)
+_K_MC = const(30)
+_K_RPF = const(31)
+_K_N = const(32)
+_W_BIAS = const(0x20000000)
 _RP_LO = RP_MIN_OHM  # as an object
 
 
 def _check(name, v, lo, hi):
     if not (lo <= v <= hi):
         raise ValueError("%s=%d out of range [%d, %d]" % (name, v, lo, hi))
-
-
-@micropython.native
-def rp_from_vp(vp_mv, i_ua):
-    """Peak resistance in ohm from peak voltage (mV) and current (uA), rounded.
-    Returns RP_INVALID for i_ua <= 0 or vp_mv < 0 (update() faults on it) and
-    RP_OVER for vp_mv > VP_LIMIT_MV (update() reads it as electrode off)."""
-    if i_ua <= 0 or vp_mv < 0:
-        return RP_INVALID
-    if vp_mv > VP_LIMIT_MV:
-        return RP_OVER
-    return (vp_mv * 1000 + (i_ua >> 1)) // i_ua
 
 
 @micropython.viper
@@ -162,9 +161,9 @@ def _fixed_current(c, mode: int, rp_ohm: int) -> int:
     if i * t > k[_K_QMAX]:
         t = k[_K_QMAX] // i
         st |= ST_Q_MAX
-    c.i_ua = i
-    c.t_us = t
-    c.status = st
+    k[_K_I] = i  # (c.i_ua, c.t_us, c.status)
+    k[_K_T] = t
+    k[_K_ST] = st
     return st
 
 
@@ -196,7 +195,7 @@ def _from_q(c, qf: int) -> int:
     # Floor (Discussion: a sensation threshold): hold T, solve I from mE.
     if t > t_max:
         i = (qf + (t_max << 4) - 1) // (t_max << 4)
-        if int(c.i_ua) == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours
+        if k[_K_I] == i + 1:  # 1 uA of hysteresis: I does not flip between neighbours (c.i_ua)
             i += 1  # (Rp follows I, so the line's charge for I lies between the two)
         t = t_max
         if i <= k[_K_IMAX]:  # (above it the current ceiling below holds I at i_max)
@@ -241,9 +240,9 @@ def _from_q(c, qf: int) -> int:
         i2 = (qf + (t << 3)) // (t << 4)
         if i_min <= i2 and i2 <= i_max and i2 * t <= q_max:
             i = i2
-    c.i_ua = i
-    c.t_us = t
-    c.status = st
+    k[_K_I] = i  # (c.i_ua, c.t_us, c.status)
+    k[_K_T] = t
+    k[_K_ST] = st
     return st
 
 
@@ -255,35 +254,31 @@ class Controller:
     status = c.update(rp_ohm)   # -> c.i_ua, c.t_us for the next pulse
     """
 
+    i_ua, t_us, status = word(_K_I), word(_K_T), word(_K_ST)  # the next pulse (the one measured, in update)
+    mq_last_fc_per_ohm, drift_ohm = word(_K_MQL, _W_BIAS), word(_K_DR, _W_BIAS)  # (see _K_I)
+    fast_jumps, model_jumps, model_cuts = word(_K_FJ), word(_K_MJ), word(_K_MC)
+    rp_ohm = property(lambda c: c._rp_big if c._k[_K_RPF] else c._k[_K_RPG], lambda c, x: c._rp(x))
+
+    def _rp(self, x):  # rp_ohm's setter: a small int in c._k, else the int itself in c._rp_big (allocates nothing)
+        big = 0 if -0x3FFFFFFF <= x <= 0x3FFFFFFF else 1
+        self._k[_K_RPG] = 0 if big else x
+        self._k[_K_RPF] = big
+        if big:
+            self._rp_big = x
+
     def __init__(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
         self.skin = SkinModel(self)  # MODE_FAST's skin model (set_skin), built once
-        self._k = array("i", bytes(4 * _K_N))  # the law and the limits as the viper code reads them
+        self._k = self.v = array("i", bytes(4 * _K_N))  # the law, the limits, the next pulse: viper reads them
         self.before = Pulse(self._k)  # MODE_FAST: the pulse measured before the one just measured
         self.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
         self._k[_K_MODE] = self.mode = MODE_AKHTAR
-        self.rp_ohm = 0  # last Rp given to update()
-        self.me_ua2ms = 0  # mE in uA^2*ms (= uA^2*us / 1000), floored
-        self.mq_target_fc_per_ohm = 0  # target mQ in fC/ohm (= 1e-3 pC/ohm)
-        self.mq_last_fc_per_ohm = 0  # mQ of the pulse Rp was measured on
-        self.i0_ua = 0
-        self.t0_us = 0
-        self.rp0_ohm = 0
-        self.x_star_ohm = 0
-        self.y_star_pc = 0
-        self._mq_num_pc = 0  # Eq. 2: mQ = _mq_num_pc / _mq_den_ohm = (Q0 - y*) / (Rp0 - x*)
-        self._mq_den_ohm = 1
-        self._y_q4 = 0  # y* in 1/16 pC
-        self._q_max_q4 = 0  # q_max in 1/16 pC
-        self._line_cap_q4 = 0  # q_max - y* in 1/16 pC: where Eq. 3 saturates
-        self.drift_ohm = 0  # MODE_FAST: Rp's last change not explained by our own step
-        self.fast_jumps = 0  # telemetry/diagnostics: Newton jumps taken
-        self.model_jumps = 0  # telemetry/diagnostics: jumps solved on the skin model
-        self.model_cuts = 0  # diagnostics: model jumps that ran out of FAST_MODEL_WORK_MAX
-        self.skin_rs_ohm = 0  # the skin model as set (set_skin; 0 = none)
-        self.skin_beta_q16 = 0
-        self.skin_cp_pf = 0
-        # the frame's call, bound once (on the chip a method is found after a miss in this map: ~15 us;
-        # the frame stores delivered()'s two attributes itself: stim.Stimulator._control)
+        self.me_ua2ms = self.mq_target_fc_per_ohm = 0  # mE in uA^2*ms (uA^2*us / 1000, floored), mQ in fC/ohm
+        self.i0_ua = self.t0_us = self.rp0_ohm = self.x_star_ohm = self.y_star_pc = 0  # calibrate() sets them
+        self._mq_num_pc, self._mq_den_ohm = 0, 1  # Eq. 2: mQ = _mq_num_pc / _mq_den_ohm = (Q0 - y*) / (Rp0 - x*)
+        self._y_q4 = self._q_max_q4 = self._line_cap_q4 = 0  # y*, q_max, q_max - y* (Eq. 3 saturates) in 1/16 pC
+        self._rp_big = self.mq_last_fc_per_ohm = self.drift_ohm = 0  # (words but _rp_big: _K_RPG ... _K_MC)
+        self.skin_rs_ohm = self.skin_beta_q16 = self.skin_cp_pf = 0  # the skin model as set (set_skin; 0 = none)
+        # the frame's call, bound once (a method is found after a miss in this map: ~15 us on the chip)
         self.update = self.update
 
     def set_limits(self, i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
@@ -411,15 +406,17 @@ class Controller:
         k = ptr32(ka)
         if not k[_K_I0]:  # (below: the fault rules)
             return int(self.stop(ST_UNCALIBRATED))
-        self.rp_ohm = rp_ohm
         rp = int(rp_ohm)  # a machine word: an int beyond it is caught by the echo through _k
         if rp >= RP_MIN_OHM and rp <= RP_MAX_OHM:  # (Rp < RP_MIN_OHM also covers Rp <= x*, as x* <= 0)
             k[_K_RP] = rp
         if rp < RP_MIN_OHM or rp > RP_MAX_OHM or ka[_K_RP] != rp_ohm:
-            self.mq_last_fc_per_ohm = 0
+            self.rp_ohm = rp_ohm  # (the int given, a machine word or not)
+            k[_K_MQL] = _W_BIAS  # (self.mq_last_fc_per_ohm = 0)
             return int(self.stop(ST_RP_LOW if rp_ohm < _RP_LO else ST_RP_HIGH))
-        i_k = int(self.i_ua)  # the pulse this Rp was measured on
-        t_k = int(self.t_us)
+        k[_K_RPG] = rp  # (self.rp_ohm)
+        k[_K_RPF] = 0
+        i_k = k[_K_I]  # the pulse this Rp was measured on (self.i_ua, self.t_us)
+        t_k = k[_K_T]
         q_k = i_k * t_k
         mq = 0  # its mQ (telemetry)
         if i_k > 0:
@@ -427,7 +424,7 @@ class Controller:
             mq = int(muldiv(n if n >= 0 else 0 - n, 1000, rp + k[_K_XSN], 0, _MQ_CAP))
             if n < 0:
                 mq = 0 - mq
-        self.mq_last_fc_per_ohm = mq
+        k[_K_MQL] = mq + _W_BIAS  # (self.mq_last_fc_per_ohm)
         mode = k[_K_MODE]
         if mode < MODE_AKHTAR:
             return int(_fixed_current(self, mode, rp))

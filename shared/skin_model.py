@@ -77,6 +77,10 @@ _ST_T_MAX = const(0x008)  # sensation_core.ST_T_MAX
 _KB_I = const(17)  # the words of the controller's c._k that hold c.before (fast_step._K_B):
 _KB_T = const(18)  # its I, T and Rp
 _KB_RP = const(20)
+_KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_core._K_I, _K_T, _K_ST)
+_KC_T = const(23)
+_KC_ST = const(24)
+_KC_MJ = const(29)  # c.model_jumps
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -1087,10 +1091,10 @@ class SkinModel:
         if step > 0 and ((q16 - base) >> FAST_MODEL_RAISE_LOG2) >= step and q16 - base > (step << FAST_MODEL_RAISE_LOG2):
             q16 = base + (step << FAST_MODEL_RAISE_LOG2)
         c = self.c
-        s_k = int(c.status)
+        s_k = pk[_KC_ST]  # (c.status)
         st = int(from_q(c, q16))
-        v[_V_PROBE + _P_LI] = int(c.i_ua)  # the pulse sent: the model's prediction of its Rp
-        v[_V_PROBE + _P_LT] = int(c.t_us)
+        v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
+        v[_V_PROBE + _P_LT] = pk[_KC_T]
         rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         if (q16 > base and jumped == 0 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
@@ -1099,15 +1103,15 @@ class SkinModel:
             # t_max, and predicts Rp to rise by more than 1/2**FAST_MODEL_RP_RISE_LOG2: half of
             # the rise now; the next pulse re-anchors the model (and refits Cp) on its reading
             q16 = base + ((q16 - base) >> 1)
-            c.i_ua = i_k
-            c.t_us = t_k
+            pk[_KC_I] = i_k  # (c.i_ua, c.t_us)
+            pk[_KC_T] = t_k
             st = int(from_q(c, q16))
-            v[_V_PROBE + _P_LI] = int(c.i_ua)
-            v[_V_PROBE + _P_LT] = int(c.t_us)
+            v[_V_PROBE + _P_LI] = pk[_KC_I]
+            v[_V_PROBE + _P_LT] = pk[_KC_T]
             rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
         v[_V_JUMPED] = 1
-        n = int(c.model_jumps)
+        n = pk[_KC_MJ]  # (c.model_jumps)
         if n < _SAT30:
-            c.model_jumps = n + 1
+            pk[_KC_MJ] = n + 1
         return st

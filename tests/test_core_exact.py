@@ -264,6 +264,8 @@ def test_rp_from_vp():
     assert sc.rp_from_vp(5000, 0) == sc.RP_INVALID
     assert sc.rp_from_vp(-1, 1000) == sc.RP_INVALID
     assert sc.rp_from_vp(sc.VP_LIMIT_MV + 1, 1000) == sc.RP_OVER
+    assert sc.rp_from_vp(sc.VP_LIMIT_MV, 1) == sc.VP_LIMIT_MV * 1000  # the limit itself is still a reading
+    assert sc.rp_from_vp(0, 1) == 0 and sc.rp_from_vp(1, -5) == sc.RP_INVALID
 
 
 def test_open_loop_mode_holds_calibration_but_still_faults():
