@@ -164,7 +164,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     One machine-code function (viper) with the model's Rp and fixmath.exp2q's
     interpolation inline: no call per evaluation. Every value is below 2**30, so
     32-bit (ARM) and 64-bit words give Python's results; the interpolation
-    floor(num * w / den) goes in two 9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
+    floor(num * w / den) is one division where w < 2**12 (num * w < 2**30), else it goes in two
+    9-bit halves of w (num <= den < 2**18, w <= 2**18)."""
     v = ptr32(vv)
     e = ptr32(_TAB)  # 2**x and log2 tables, their differences
     beta = v[_V_BETA]

@@ -1,8 +1,9 @@
 """One evaluation of the skin model inside shared/skin_model.py `_root` (machine code on the
 chip: its set-up per search and its inline log2 / 2**x, docs/performance.md "One evaluation
 of the model, cheaper"):
-- every evaluation the golden skin streams' searches make, and more points of their ranges,
-  equals the model's formula written plainly with fixmath (log2q, exp2q, mul_q16, muldiv);
+- evaluations at fixed points of the search ranges of the first 120 golden skin streams
+  equal the model's formula written plainly with fixmath (log2q, exp2q, mul_q16, muldiv)
+  (every evaluation the golden streams make is covered by their hashes, tests/test_core_golden.py);
 - the divisions of the small-z series replaced by multiply-shifts are exact over the whole
   range their operands can take (exhaustive), and that range is what the code says."""
 
