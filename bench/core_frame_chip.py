@@ -9,7 +9,8 @@ bench_sc.py's scenario c), timed with ticks_us on the emulated clock less the em
 timing window:
 - `update`: `c.update(rp)` alone, the bound method fetched once (as bench_sc.py);
 - `frame`: what stim.Stimulator._control spends in the core for a channel:
-  `ctl.i_ua = c.di`, `ctl.t_us = c.dt` (delivered(), inline), `ctl.update(c.rp)`, then
+  `ctl.i_ua = c.di`, `ctl.t_us = c.dt` (properties over the words `stim._control` stores
+  by ptr32 since session 16: this bench's figure is an upper bound), `ctl.update(c.rp)`, then
   `ctl.i_ua`, `ctl.t_us` read,
   from a plain function, the controller an attribute of a channel object (the
   pulse delivered = the controller's own last output);

@@ -101,6 +101,9 @@ def _step(c, r, cal) -> bool:
     elif r["stop"] == hp.STOP_ELECTRODE_OFF:
         c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range
     else:
+        for name, hi in (("i_ua", sc.I_LIMIT_UA), ("t_us", sc.T_LIMIT_US)):  # (a device never reports past them)
+            if not 0 <= r[name] <= hi:
+                raise ValueError(f"{name}={r[name]} out of range 0..{hi}")
         c.delivered(r["i_ua"], r["t_us"])
         c.update(r["rp_ohm"])
     return True

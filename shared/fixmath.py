@@ -260,13 +260,16 @@ def word(j, bias=0):
     """A property for word j of self.v, an int array the viper code reads by ptr32 (kept
     + bias where the value can be negative: a 64-bit viper reads a word unsigned), so that
     commands and tests keep attribute names (sensation_core's Pulse view, SkinModel,
-    stim.Channel). The array stores a machine word: MicroPython cuts an int past it where
-    CPython raises; every writer stores values checked far inside it."""
+    stim.Channel). The array stores a machine word: a value whose stored word would be past
+    +-2**30 is refused with ValueError on both VMs (MicroPython would cut it, CPython raise
+    OverflowError), so an attribute reads back what was set or nothing changes."""
 
     def get(self):
         return self.v[j] - bias
 
     def put(self, x):
+        if not -0x3FFFFFFF <= x + bias <= 0x3FFFFFFF:
+            raise ValueError("%d out of range [%d, %d]" % (x, -0x3FFFFFFF - bias, 0x3FFFFFFF - bias))
         self.v[j] = x + bias
 
     return property(get, put)

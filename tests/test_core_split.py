@@ -158,7 +158,7 @@ def frame(n):
     k = 0
     while k < n:
         c.set_mode(sc.MODES[k % 6])
-        c.i_ua = c.i_ua  # the pulse delivered, as stim's _control stores it (delivered(), inline)
+        c.i_ua = c.i_ua  # the pulse delivered (stim's _control stores these words by ptr32; the setters too allocate nothing)
         c.t_us = c.t_us
         c.update(10000 + (k * 7919) % 90000)
         k += 1

@@ -15,7 +15,8 @@ RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they
     # the counters (overruns, loop us) saturate (hid_protocol.sat16)
     "ch": (0, 1), "mode": (0, 5), "stop": (0, 7), "seq": (0, 2**30 - 1), "frame_t": (0, 2**30 - 1),
     "di": (0, 2**20), "dt": (0, 2**20), "vp": (-(2**30) + 1, 2**30 - 1), "rp": (-(2**30) + 1, 2**30 - 1),
-    "me": (-(2**30) + 1, 2**30 - 1), "mqt": (-(2**30) + 1, 2**30 - 1), "mql": (-(2**30) + 1, 2**30 - 1),
+    "me": (-(2**30) + 1, 2**30 - 1), "mqt": (-(2**30) + 1, 2**30 - 1),
+    "mql": (-(2**29) + 1, 2**29 - 1),  # the measured mQ: within sensation_core's _MQ_CAP (a word + 2**29 holds it)
     "status": (0, 2**20), "ni": (0, 2**20), "nt": (0, 2**20), "over": (-3, 2**20), "loop": (-3, 2**20),
     "armed": (0, 1), "held": (0, 1), "keepalive_ms": (0, 5000), "cal": (0, 1), "rate": (10, 100),
 }

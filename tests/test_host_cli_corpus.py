@@ -182,6 +182,21 @@ def test_audit_names_the_row_of_a_value_the_core_refuses(corpus, tmp_path, capsy
     assert len(err) == 1 and "mode99.csv: data row 2: mode=99 out of range" in err[0], err
 
 
+@pytest.mark.parametrize("field, value", [("t_us", 3000000000), ("t_us", 2**31), ("i_ua", -(2**31) - 5), ("i_ua", 20001)])
+def test_audit_names_a_recorded_pulse_past_the_cores_limits(corpus, tmp_path, capsys, field, value):
+    """A recording whose pulse is past the core's envelope (a corrupt or edited file): one line
+    naming the row, the value and the range, no traceback (review of session 16: the controller's
+    words raised OverflowError there)."""
+    row = REC_ROW.format(k=1, t=20000).split(",")
+    row[3 if field == "i_ua" else 4] = str(value)
+    f = tmp_path / "big.csv"
+    cal = REC_ROW.format(k=0, t=0).replace(",1,0,100\n", ",9,0,100\n")  # flags: armed + the calibration pulse
+    f.write_text(REC_HEAD + cal + ",".join(row))
+    assert main(["audit", str(f)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"big.csv: data row 2: {field}={value} out of range 0.." in err[0], err
+
+
 def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
     import steadytouch.cli as cli
 
