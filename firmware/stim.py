@@ -603,17 +603,16 @@ class Stimulator:
             c.ctl.stop(sc.ST_RP_LOW)
             return
         ctl = c.ctl
+        k = ptr32(ctl._k)  # the controller's words (the same array before and after calibrate, update)
         if v[_CALIB]:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
             ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
             v[_CALIB] = 0
         else:
-            k = ptr32(ctl._k)
             k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us): a held proposal was not what was measured
             k[_C_K_T] = v[_DT]
             if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
-        k = ptr32(ctl._k)
         ni = k[_C_K_I]  # (ctl.i_ua, ctl.t_us)
         nt = k[_C_K_T]
         q = ni * nt
