@@ -379,7 +379,8 @@ class Controller:
     def delivered(self, i_ua, t_us):
         """Tell the controller the pulse actually delivered, when it differs from
         its own last output (the firmware's supervisor may hold a proposal);
-        update() then measures mQ, and MODE_FAST its secant, against it (stim._control: inline)."""
+        update() then measures mQ, and MODE_FAST its secant, against it (stim._control: inline).
+        A pulse past q_max gets the paper's step, and MODE_FAST forgets the pulses before it."""
         self.i_ua = i_ua
         self.t_us = t_us
 
@@ -431,7 +432,9 @@ class Controller:
         qf = int(_line(self, rp))
         if qf <= 0:
             return int(self.stop(ST_Q_NONPOS))
-        if mode != MODE_FAST:
+        if mode != MODE_FAST or q_k > k[_K_QMAX]:  # (past q_max: told by delivered(), no jump from it)
+            if mode == MODE_FAST:
+                self._forget()
             return int(_from_q(self, qf))
         st = int(fast_pulse(self, qf, q_k, rp_ohm, _line, _from_q))
         k[_K_B] = i_k  # c.before, for the next secant, drift and two-pulse fit

@@ -176,3 +176,28 @@ def test_fast_ceiling_entry_corrects_the_papers_current():
     assert paper.i_ua == 252  # ceil(2 008 364 pC / 8000 us)
     # Rp predicted with the least elasticity: 127069 (1 + 0.45 (388 - 252) / 252) = 158 kohm
     assert 300 <= fast.i_ua <= 310 and fast.t_us <= 8000
+
+
+@settings(max_examples=1500)
+@given(st.data())
+def test_a_delivered_pulse_past_q_max_keeps_every_intermediate_below_2_30(data):
+    """delivered() may name a pulse past the controller's q_max (an audit replaying a
+    record, a board whose limits are not the controller's): I and T anywhere in the core's
+    envelope. Every mode's next update stays in a machine word (was: MODE_FAST's step
+    test shifted I*T by 4 bits, past 2**31 for I*T > 2**27)."""
+    import sensation_core as sc
+
+    from strategies import calibration, limits
+
+    lim = data.draw(limits())
+    cal = data.draw(calibration(lim))
+    c = CORE.Controller(lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc)
+    c.calibrate(cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc)
+    c.set_mode(data.draw(st.sampled_from((CORE.MODE_AKHTAR, CORE.MODE_FAST))))
+    if data.draw(st.booleans()):  # a measured pulse before: MODE_FAST has a secant to take
+        c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
+    i_k = data.draw(st.integers(1, sc.I_LIMIT_UA))
+    t_k = data.draw(st.integers(1, sc.T_LIMIT_US))
+    c.delivered(i_k, t_k)
+    c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
+    assert c.i_ua * c.t_us <= lim.q_max_pc
