@@ -9,7 +9,9 @@
 # uncorrected and says which in its state, reported by GET_INFO) and write it
 # when the host sends CMD_SET_VMON ... VMON_STORE (store: a temporary file
 # renamed over the old one, so a reset mid-write keeps the old file or the new
-# one, never half of one). stim._measure applies it to each pulse's peak count.
+# one, never half of one; the lines of channels this build lacks, stored by a
+# build with more channels, are kept). stim._measure applies it to each pulse's
+# peak count.
 import hid_protocol as hp
 
 CAL_HEADER = "steadytouch monitor correction v1"
@@ -21,15 +23,15 @@ CAL_DAC_PPM = (hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX)  # accepted DAC gain (d
 ADC_MAX = 4095
 
 
-def parse(text, n_channels):
-    """The file's text: a header line, then one line `CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]`
-    per channel (GAIN_PPM 0 with OFFSET_MV 0: the monitor uncorrected; DAC_GAIN_PPM 0 or
-    absent: the DAC nominal). Returns [(gain_ppm, offset_mv, dac_gain_ppm) or None per
-    channel]; ValueError names the line."""
+def entries(text):
+    """Every line of the file's text as (ch, gain_ppm, offset_mv, dac_gain_ppm), in file order, each
+    checked (format, windows, a channel once). The text: a header line, then one line
+    `CH GAIN_PPM OFFSET_MV [DAC_GAIN_PPM]` per channel (GAIN_PPM 0 with OFFSET_MV 0: the monitor
+    uncorrected; DAC_GAIN_PPM 0 or absent: the DAC nominal). ValueError names the line."""
     lines = text.splitlines()
     if not lines or lines[0].strip() != CAL_HEADER:
         raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
-    out = [None] * n_channels
+    out = []
     seen = []
     for k in range(1, len(lines)):
         ln = lines[k].strip()
@@ -53,7 +55,18 @@ def parse(text, n_channels):
             raise ValueError("correction file line %d: channel %d %s" % (k + 1, ch, "given twice" if ch >= 0
                                                                         else "is negative"))
         seen.append(ch)
-        if ch < n_channels and (g or dac):  # (a channel this board is not built with: kept in the file, unused)
+        out.append((ch, g, off, dac))
+    return out
+
+
+def parse(text, n_channels):
+    """The file's text (entries()) for a board of n_channels: [(gain_ppm, offset_mv,
+    dac_gain_ppm) or None per channel]; ValueError names the line. A line of a channel
+    this board is not built with is checked like the others and kept in the file (store),
+    unused."""
+    out = [None] * n_channels
+    for ch, g, off, dac in entries(text):
+        if ch < n_channels and (g or dac):
             out[ch] = (g, off, dac)
     return out
 
@@ -92,25 +105,44 @@ def boot_load(path, n_channels):
         return [None] * n_channels, hp.VMON_BAD
 
 
-def text(values):
-    """The file's text for values [(gain_ppm, offset_mv, dac_gain_ppm) or None per channel]."""
+def text(values, others=()):
+    """The file's text for values [(gain_ppm, offset_mv, dac_gain_ppm) or None per channel],
+    then the lines `others` [(ch, gain_ppm, offset_mv, dac_gain_ppm)] of channels past them."""
     out = CAL_HEADER + ("\n# CH GAIN_PPM OFFSET_MV DAC_GAIN_PPM: measured mV = gain x true mV + offset; "
                         "delivered uA = DAC gain x nominal uA (steadytouch selftest)\n")
     for ch in range(len(values)):
         v = values[ch]
         if v:
             out += "%d %d %d %d\n" % (ch, v[0], v[1], v[2] if len(v) > 2 else 0)
+    for e in others:
+        out += "%d %d %d %d\n" % e
     return out
 
 
+def kept(path, n_channels):
+    """The lines of the file at path for channels >= n_channels (stored by a build with more
+    channels), as entries(): a store keeps them. None of them when there is no file or it is
+    one the firmware ignores (unreadable, out of range: it is replaced whole). A MemoryError
+    is raised (the store then fails and writes nothing)."""
+    try:
+        with open(path) as f:
+            t = f.read()
+        return [e for e in entries(t) if e[0] >= n_channels]
+    except (OSError, ValueError, UnicodeError):  # no file, or one the firmware ignores at boot
+        return []
+
+
 def store(path, values):
-    """Write the file for values: a temporary file renamed over the old one. True if written."""
+    """Write the file for values (one entry per channel of this board) and the lines the
+    file holds for channels past them (kept): a temporary file renamed over the old one,
+    so a reset mid-write leaves the old file or the new one. True if written."""
     import os
 
+    others = kept(path, len(values))
     tmp = path + ".tmp"
     try:
         with open(tmp, "w") as f:
-            f.write(text(values))
+            f.write(text(values, others))
         os.rename(tmp, path)
     except OSError:
         return False

@@ -582,3 +582,84 @@ def _info_with(state):
     import dataclasses
 
     return dataclasses.replace(_info(2), vmon_state=state)
+
+
+FOUR = (vmon_cal.CAL_HEADER + "\n0 1020000 100 0\n1 990000 -50 1006000\n2 1030000 -200 994000\n"
+        "3 0 0 1012000\n")  # stored by a 4-channel build
+
+
+def test_store_keeps_the_lines_of_channels_this_board_is_not_built_with_on_cpython(tmp_path):
+    """Issue 13 (deliverable 4's loose ends): a correction measured on a 4-channel build was lost when a
+    2-channel build stored its own (store rewrote the file from this board's channels only). The lines of
+    channels past the board's are kept as they stand; a file the firmware ignores (corrupt, out of its
+    windows) is replaced whole; no file: only this board's lines."""
+    p = tmp_path / "vmon_cal.txt"
+    p.write_text(FOUR)
+    assert vmon_cal.store(str(p), [(1011000, 150, 0), None])  # ch1 cleared (uncorrected), ch2 and ch3 kept
+    assert vmon_cal.parse(p.read_text(), 4) == [(1011000, 150, 0), None, (1030000, -200, 994000), (0, 0, 1012000)]
+    assert vmon_cal.parse(p.read_text(), 2) == [(1011000, 150, 0), None]
+    assert not (tmp_path / "vmon_cal.txt.tmp").exists()
+    for bad in ("garbage\n", FOUR + "2 5000000 0 0\n", FOUR.replace("-200", "-5000"), "\xff\xfe"):
+        p.write_bytes(bad.encode("latin-1"))
+        assert vmon_cal.store(str(p), [(1011000, 150, 0), None])
+        assert vmon_cal.parse(p.read_text(), 4) == [(1011000, 150, 0), None, None, None], bad
+    p.unlink()
+    assert vmon_cal.store(str(p), [None, (990000, -50, 1006000)])
+    assert vmon_cal.parse(p.read_text(), 4) == [None, (990000, -50, 1006000), None, None]
+
+
+def test_store_keeps_the_other_builds_lines_on_the_simulated_board_in_the_vm(tmp_path):
+    """The same on the device: a 2-channel SimBoard in the MicroPython VM stores with SET_VMON to every
+    channel (VMON_STORE, heap-locked section left for the write); the next boot of a 4-channel board
+    loads all four."""
+    (tmp_path / "vmon_cal.txt").write_text(FOUR)
+    body = PULSES + f"""
+s = board(flash_dir={str(tmp_path)!r})
+r = locked(s, hp.cmd_set_vmon_all(bytearray(64), hp.VMON_STORE, [(1011000, 150, 0), (0, 0, 0)]))
+bd4 = SimBoard(cfg, VirtualClock(0), sim_electrode.scenario("steady"), 4, 1, MemoryUSB(True), noise_counts=0.0,
+               load_ohm=10000, flash_dir={str(tmp_path)!r})
+result(r=r, state=s.vmon_state, four=[list(v) if v else None for v in bd4.vmon_cal], state4=bd4.vmon_state)
+"""
+    _, res, _ = run_fw(body)
+    assert res[0] == {"r": hp.RES_OK, "state": hp.VMON_STORED, "state4": hp.VMON_LOADED,
+                      "four": [[1011000, 150, 0], None, [1030000, -200, 994000], [0, 0, 1012000]]}
+
+
+RP2_STORE = """
+import sys, time, types
+sys.path[:0] = [{tests!r}, {firmware!r}, {shared!r}]
+import fake_rp2
+fake_rp2.install().asm_pio_encode = lambda text, side: 0
+machine = types.ModuleType("machine")
+machine.disable_irq = lambda: 0
+machine.enable_irq = lambda state: None
+sys.modules["machine"] = machine
+mp = types.ModuleType("micropython")
+mp.const = lambda x: x
+mp.viper = mp.native = lambda f: f
+sys.modules["micropython"] = mp
+sys.modules["uctypes"] = types.ModuleType("uctypes")
+for name in ("ticks_us", "ticks_ms", "ticks_diff", "ticks_add", "sleep_us", "sleep_ms"):
+    setattr(time, name, lambda *a: 0)
+import board_rp2
+path = sys.argv[1]
+ok = board_rp2.Board.store_vmon(None, [(1011000, 150, 0), None], path)  # (store_vmon uses nothing of self)
+print(repr([ok, board_rp2.load_vmon(4, path)]))
+"""
+
+
+def test_store_keeps_the_other_builds_lines_on_the_rp2_boards_path(tmp_path):
+    """board_rp2's own store and boot load (the rp2 board's code, imported on CPython with the tests'
+    fake rp2 and stand-ins for machine, micropython and uctypes)."""
+    import subprocess
+
+    from conftest import ROOT, SHARED
+
+    (tmp_path / "vmon_cal.txt").write_text(FOUR)
+    script = RP2_STORE.format(tests=str(ROOT / "tests"), firmware=str(FIRMWARE), shared=str(SHARED))
+    p = subprocess.run([sys.executable, "-c", script, str(tmp_path / "vmon_cal.txt")], capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    ok, (values, state) = eval(p.stdout.strip().splitlines()[-1])
+    assert ok is True and state == hp.VMON_LOADED
+    assert values == [(1011000, 150, 0), None, (1030000, -200, 994000), (0, 0, 1012000)]
