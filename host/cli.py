@@ -767,7 +767,7 @@ def cmd_flash(a) -> int:
         return 0
     F.flash(F.Options(port=a.port, build_dir=Path(a.build_dir), lib_dir=a.lib_dir, online=a.online,
                       dry_run=a.dry_run, boot_timeout_s=a.boot_timeout_s, device=a.device,
-                      hid_check=not a.no_hid_check), say=say)
+                      hid_check=not a.no_hid_check, ignore_stored_correction=a.ignore_stored_correction), say=say)
     return 0
 
 
@@ -1046,7 +1046,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="download the pinned libraries from GitHub if they are not in the cache yet")
     s.add_argument("--boot-timeout-s", type=float, default=30.0,
                    help="how long to wait for the board to come back and run after its reset (default 30)")
-    s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, touch no board")
+    s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, copy nothing; "
+                   "with a board reachable, read its stored correction and say what the new firmware would do with it")
+    s.add_argument("--ignore-stored-correction", action="store_true",
+                   help="flash even if the new firmware would ignore the board's stored correction (/vmon_cal.txt): "
+                   "it then boots with its hard limits held and its monitor uncorrected until `steadytouch selftest`")
     s.add_argument("--build-only", action="store_true", help="compile only (what `make mpy` does)")
     s.add_argument("--device", default=DEFAULT_URL, help="the board's HID interface, asked for the version after "
                    f"the reset (default {DEFAULT_URL}; emu+tcp://127.0.0.1:PORT for an emulated Pico)")

@@ -7,6 +7,12 @@ command will reach it. The serial REPL readback is the fallback, only with
 --no-hid-check or when this computer has no HID backend (hidapi), and the
 output says so.
 
+Before it changes anything it reads the board's stored correction (/vmon_cal.txt,
+`steadytouch selftest`) and says what the new firmware will do with it at boot,
+judged by the new firmware's own rules (firmware/vmon_cal.py): none stored,
+loaded, or ignored; a file it would ignore stops the flash before anything is
+copied (--ignore-stored-correction flashes anyway).
+
 One line per step; every failure is one FlashError line naming what to do.
 Safe to run again: files already on the board (same sha256) are not copied
 again, every file is written under a temporary name and renamed, and main.py
@@ -43,7 +49,9 @@ ERROR_LOG = "/last_error.txt"  # firmware/main.py ERROR_LOG
 UDEV_RULE_DOC = "docs/70-steadytouch.rules (docs/hardware.md)"
 WDT_CTRL = 0x40058000  # RP2040 watchdog CTRL; bit 30 ENABLE (firmware/board_rp2.py watchdog_pause)
 MIN_MICROPYTHON = (1, 23)  # machine.USBDevice
-STEPS = 7
+STEPS = 8
+VMON_PATH = "/vmon_cal.txt"  # firmware/board_rp2.py VMON_PATH: the self-test's correction, read at every boot
+IGNORE_FLAG = "--ignore-stored-correction"
 WRITE_CHUNK = 2048  # bytes of a file per raw-REPL exec
 TELEMETRY_S = 1.0  # after GET_INFO: how long the HID check watches the loop's telemetry
 
@@ -186,6 +194,16 @@ for _st_p in %r:
         os.remove(_st_p)
     except OSError:
         pass
+"""
+
+
+_READ_VMON = f"""def _st_vmon():
+    try:
+        with open({VMON_PATH!r}, 'rb') as f:
+            return f.read()
+    except OSError:
+        return None
+print(repr(_st_vmon()))
 """
 
 
@@ -338,6 +356,80 @@ def _check_board(st: BoardState, port: str) -> None:
                          "newer MicroPython UF2 (docs/quickstart.md)")
 
 
+# ------------------------------------------------------------------ the stored correction
+@dataclass
+class StoredCorrection:
+    """What the new firmware will do at boot with the board's /vmon_cal.txt: state "none",
+    "loaded" or "ignored"; `line` says it in one line, `why` (ignored) names the line and the reason."""
+    state: str
+    line: str
+    why: str = ""
+
+
+def build_channels() -> int:
+    """The channels the new firmware drives: the build's board_config.N_CHANNELS (flash copies
+    board_config with the firmware, so this is the board's channel count after the flash)."""
+    from .simrun import firmware_module
+
+    return firmware_module("board_config").N_CHANNELS
+
+
+def _window() -> str:
+    return (f"the accepted window: monitor gain {hp.VMON_GAIN_PPM_MIN / 1e6:g}-{hp.VMON_GAIN_PPM_MAX / 1e6:g}, "
+            f"offset {hp.VMON_OFFSET_MV_MIN:+d}..{hp.VMON_OFFSET_MV_MAX:+d} mV, DAC gain "
+            f"{hp.VMON_DAC_PPM_MIN / 1e6:g}-{hp.VMON_DAC_PPM_MAX / 1e6:g}, docs/hardware.md \"The accepted window\"")
+
+
+def judge_correction(data: bytes | None, n_channels: int) -> StoredCorrection:
+    """The board's stored correction file (its bytes; None: no file) judged by the new firmware's
+    own parser (firmware/vmon_cal.py, plain Python) for n_channels, as its boot will read it."""
+    from .simrun import firmware_module
+
+    vc = firmware_module("vmon_cal")
+    held = f"x {hp.VMON_DAC_PPM_MIN / 1e6:g}"
+    if data is None:
+        return StoredCorrection("none", f"stored correction: none on the board ({VMON_PATH}): the new firmware boots "
+                                f"with every monitor uncorrected and its hard limits held {held} until "
+                                "`steadytouch selftest --load-ohm OHMS --scope` stores one")
+    try:
+        text = data.decode("utf-8")
+        values = vc.parse(text, n_channels)
+        others = [e[0] for e in vc.entries(text) if e[0] >= n_channels]
+    except (ValueError, UnicodeError) as e:  # (what the firmware's boot_load calls VMON_BAD)
+        why = "not UTF-8 text" if isinstance(e, UnicodeError) else str(e)
+        return StoredCorrection("ignored", f"stored correction {VMON_PATH}: the new firmware would ignore it at boot "
+                                f"({why}; {_window()}): the board would boot with its hard limits held {held} and "
+                                "every monitor uncorrected", why)
+    parts = []
+    for ch, v in enumerate(values):
+        if v is None:
+            parts.append(f"ch{ch} none")
+            continue
+        g, off, dac = v
+        mon = f"monitor gain {g / 1e6:.4f} offset {off:+d} mV" if g else "monitor uncorrected"
+        parts.append(f"ch{ch} {mon}, " + (f"DAC gain {dac / 1e6:.4f}" if dac else "DAC gain not measured"))
+    line = (f"stored correction {VMON_PATH}: the new firmware loads it at boot ({n_channels} channels): "
+            + "; ".join(parts))
+    if any(v is None or not v[2] for v in values):
+        line += f" (hard limits held {held} while a channel has no DAC gain)"
+    if others:
+        line += "; kept in the file, unused by this build: " + ", ".join(f"ch{ch}" for ch in others)
+    return StoredCorrection("loaded", line)
+
+
+def read_correction(link: BoardLink, n_channels: int) -> StoredCorrection:
+    """The board's /vmon_cal.txt read over the REPL link, judged (judge_correction)."""
+    return judge_correction(link.eval(_READ_VMON), n_channels)
+
+
+def _refuse_ignored(c: StoredCorrection, version: str, dry_run: bool) -> FlashError:
+    stop = "flash would stop here, before copying anything" if dry_run else "stopped before copying anything"
+    return FlashError(f"{stop}: the board's stored correction {VMON_PATH} would be ignored by firmware {version} "
+                      f"({c.why}), so the board would boot with its hard limits held and its monitor uncorrected; "
+                      f"flash anyway with {IGNORE_FLAG}, then run `steadytouch selftest --load-ohm OHMS --scope` "
+                      "to store a correction it loads")
+
+
 # ------------------------------------------------------------------ the steps
 @dataclass
 class Options:
@@ -350,6 +442,7 @@ class Options:
     lib_url: str = boardlib.URL
     device: str = DEFAULT_URL  # where the HID check finds the board after its reset
     hid_check: bool = True  # False: read the version back over the serial REPL (--no-hid-check)
+    ignore_stored_correction: bool = False  # flash even when the new firmware would ignore /vmon_cal.txt
 
 
 def _n(n: int, word: str) -> str:
@@ -382,6 +475,9 @@ def flash(o: Options, say=print) -> BoardState | None:
         port = o.port or "the Pico found by USB VID 0x2E8A"
         say(f"dry run: nothing was sent. On {port} flash would:")
         say("  stop the running program (Ctrl-C), pause the watchdog, show and clear " + ERROR_LOG)
+        say(f"  read the board's stored correction {VMON_PATH} and judge it by the new firmware's rules "
+            f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it (unless "
+            f"{IGNORE_FLAG})")
         say(f"  copy what differs (sha256) of {len(b.files)} files:")
         for dst, src in sorted(b.files.items()):
             say(f"    {src} -> :{dst}")
@@ -390,6 +486,7 @@ def flash(o: Options, say=print) -> BoardState | None:
                if o.hid_check else "read its version back over the serial REPL (--no-hid-check); reset it again"))
         if missing is not None and not o.online:
             raise FlashError("the pinned libraries are missing (step 2): flash would stop there")
+        _dry_run_correction(o, say)
         return None
     port = o.port or find_port()
     link, st = connect(port, timeout_s=6)
@@ -404,6 +501,14 @@ def flash(o: Options, say=print) -> BoardState | None:
                 say("      " + line)
         else:
             _step(say, 4, "no error log on the board")
+        c = read_correction(link, build_channels())
+        _step(say, 5, c.line)
+        if c.state == "ignored":
+            if not o.ignore_stored_correction:
+                link.reset()  # run again what it ran: nothing was changed
+                raise _refuse_ignored(c, fw_version(), False)
+            say(f"      flashing anyway ({IGNORE_FLAG}): run `steadytouch selftest --load-ohm OHMS --scope` "
+                "afterwards to store a correction the new firmware loads")
         _deploy(link, b, say)
     finally:
         link.close()
@@ -417,6 +522,24 @@ def flash(o: Options, say=print) -> BoardState | None:
         boot_check(port, o.boot_timeout_s, say, want, why)
     say(f"done in {time.monotonic() - t0:.0f} s: the board runs steadytouch firmware {want}")
     return want
+
+
+def _dry_run_correction(o: Options, say) -> None:
+    """--dry-run: the board's stored correction and the verdict, if a board can be reached (its
+    program is stopped to read the file, then the board is reset to run it again); nothing copied."""
+    try:
+        port = o.port or find_port()
+        link, _ = connect(port, timeout_s=6)
+    except FlashError as e:
+        say(f"stored correction: not checked (no board reached: {e})")
+        return
+    try:
+        c = read_correction(link, build_channels())
+    finally:
+        link.reset()  # run again what it ran
+    say(f"on {port} now (read over its REPL; its program was stopped for it and restarted): {c.line}")
+    if c.state == "ignored" and not o.ignore_stored_correction:
+        raise _refuse_ignored(c, fw_version(), True)
 
 
 def _deploy(link: BoardLink, b: Build, say) -> None:
@@ -437,10 +560,10 @@ def _deploy(link: BoardLink, b: Build, say) -> None:
         link.write(p, b.files[p].read_bytes())
     if change_libs:
         unknown = sum(1 for p in change_libs if have[p] is not None)
-        _step(say, 5, f"libraries on the board: installed {_n(len(change_libs), 'file')} into /lib/usb/device"
+        _step(say, 6, f"libraries on the board: installed {_n(len(change_libs), 'file')} into /lib/usb/device"
               + (f" ({unknown} replaced: not the pinned version)" if unknown else ""))
     else:
-        _step(say, 5, f"libraries on the board: {boardlib.NAME}, all {len(libs)} files up to date")
+        _step(say, 6, f"libraries on the board: {boardlib.NAME}, all {len(libs)} files up to date")
     order = [p for p in change_fw if p != "/main.py"] + [p for p in change_fw if p == "/main.py"]
     if "/main.py" not in order and (change_libs or change_fw or present):
         order.append("/main.py")  # removed above
@@ -453,7 +576,7 @@ def _deploy(link: BoardLink, b: Build, say) -> None:
                          "run flash again")
     link.remove([ERROR_LOG])
     gone = f", removed {len(present)} shadowing .py" if present else ""
-    _step(say, 6, f"firmware: copied {_n(len(order), 'file')}, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
+    _step(say, 7, f"firmware: copied {_n(len(order), 'file')}, {len(fw) - len(order)} unchanged{gone}; sha256 checked")
 
 
 def hid_unavailable(url: str) -> str | None:
@@ -516,7 +639,7 @@ def boot_check_hid(port: str, url: str, want: str, timeout_s: float, say):
     if not telemetry:
         raise FlashError(f"the firmware {want} answered GET_INFO over HID but sent no telemetry for "
                          f"{TELEMETRY_S:g} s: its loop is not running; see `mpremote connect {port} repl`")
-    _step(say, 7, f"boot check over HID ({url}): steadytouch {info.firmware} on {info.board} answered GET_INFO, "
+    _step(say, STEPS, f"boot check over HID ({url}): steadytouch {info.firmware} on {info.board} answered GET_INFO, "
           f"the version flashed; {len(telemetry)} telemetry reports in {TELEMETRY_S:g} s, no firmware error")
     _say_vmon(info.vmon_state, say)
     return info
@@ -597,7 +720,7 @@ def boot_check(port: str, timeout_s: float, say, want: str | None = None, why: s
         if want is not None and st.fw_text() != want:
             raise FlashError(f"the board at {port} runs steadytouch firmware {st.fw_text()}, but {want} was just "
                              "flashed: run flash again")
-        _step(say, 7, f"boot check: steadytouch {st.fw_text()} ran {st.frames} frames with no error; "
+        _step(say, STEPS, f"boot check: steadytouch {st.fw_text()} ran {st.frames} frames with no error; "
               f"version read back over the serial REPL, not over HID ({why}); restarting it")
         _say_vmon(st.vmon, say)
     finally:

@@ -69,7 +69,7 @@ def mpremote(pico, *args, timeout=60, soft_reset=False):
 def over_hid(pico, out):
     """Step 7 says the version came over HID from this board's HID interface, and the emulator saw it:
     a HID client on this board (after its last reset) that sent reports (GET_INFO) and was answered."""
-    m = re.search(r"\[7/7\] boot check over HID \((\S+)\): steadytouch (\S+) on (\S+) answered GET_INFO, the version "
+    m = re.search(r"\[8/8\] boot check over HID \((\S+)\): steadytouch (\S+) on (\S+) answered GET_INFO, the version "
                   r"flashed; (\d+) telemetry reports", out)
     assert m, out
     assert m.group(1) == pico.hid_url and m.group(2) == FW and m.group(3) == "pico-stmisola" and int(m.group(4)) > 0
@@ -103,7 +103,7 @@ def test_flash_a_blank_board_boots_and_runs_its_loop(pico, tmp_path):
     rc, lines, err = flash(pico, tmp_path / "dev")
     out = text(lines)
     assert rc == 0, out + err
-    assert [s[:5] for _, s in lines if s.startswith("[")] == [f"[{k}/7]" for k in range(1, 8)]
+    assert [s[:5] for _, s in lines if s.startswith("[")] == [f"[{k}/8]" for k in range(1, 9)]
     assert "no steadytouch loop was running" in out and "no error log on the board" in out
     assert "installed 3 files into /lib/usb/device" in out and f"copied {N_FILES} files, 0 unchanged" in out
     over_hid(pico, out)
@@ -157,6 +157,29 @@ def test_flash_again_onto_the_running_board(pico, tmp_path):
     assert resets(pico) == 0
 
 
+def test_a_stored_correction_the_new_firmware_would_ignore_stops_flash_before_it_copies(pico, tmp_path):
+    """Issue 13 (deliverable 4): flash reads the board's /vmon_cal.txt over its REPL and judges it by the new
+    firmware's rules before it changes anything. One stored under other windows (monitor gain 1.095) would
+    be ignored at boot: one stderr line, nothing copied, the board reset to run what it ran."""
+    wait_until_running(pico)
+    p = mpremote(pico, "exec", "f = open('/vmon_cal.txt', 'w')\n"
+                 "f.write('steadytouch monitor correction v1\\n0 1095000 0 0\\n')\nf.close()")
+    assert p.returncode == 0, p.stderr
+    try:
+        rc, lines, err = flash(pico, tmp_path / "dev")
+        out = text(lines)
+        assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, out + err
+        assert "stopped before copying anything: the board's stored correction /vmon_cal.txt would be ignored" in err
+        assert "--ignore-stored-correction" in err and "correction file line 2: gain 1095000 ppm" in err
+        assert "[5/8] stored correction /vmon_cal.txt: the new firmware would ignore it at boot" in out
+        assert "[6/8]" not in out and "[7/8]" not in out
+        wait_until_running(pico)  # reset by flash: the firmware it had runs again
+    finally:
+        mpremote(pico, "exec", "import os; os.remove('/vmon_cal.txt')")
+        mpremote(pico, "reset")
+    assert resets(pico) == 0
+
+
 def test_a_hid_interface_that_cannot_be_reached_is_one_line_with_hints(pico, tmp_path):
     """The firmware runs but the HID device named is not there (a missing udev rule looks the same):
     flash waits --boot-timeout-s, asks the serial port why, and names what to check."""
@@ -187,7 +210,7 @@ def test_a_boot_error_is_logged_without_a_reset_loop_and_flash_shows_and_mends_i
     rc, lines, err = flash(pico, tmp_path / "dev")
     out = text(lines)
     assert rc == 0, out + err
-    assert "[4/7] the board's error log /last_error.txt" in out and "usb-device is not installed" in out
+    assert "[4/8] the board's error log /last_error.txt" in out and "usb-device is not installed" in out
     assert "installed 1 file into /lib/usb/device" in out
     over_hid(pico, out)
     p = mpremote(pico, "exec", "import os; print('/last_error.txt' in ['/' + n for n in os.listdir('/')])")
@@ -217,7 +240,7 @@ def test_a_board_in_a_watchdog_reset_loop_is_recovered_by_flash(pico, tmp_path):
     out = text(lines)
     assert rc == 0, out + err
     assert f"copied 1 file, {N_FILES - 1} unchanged" in out and f"the board runs steadytouch firmware {FW}" in out
-    assert re.search(rf"\[7/7\] boot check: steadytouch {re.escape(FW)} ran [1-9]\d* frames with no error; version "
+    assert re.search(rf"\[8/8\] boot check: steadytouch {re.escape(FW)} ran [1-9]\d* frames with no error; version "
                      r"read back over the serial REPL, not over HID \(--no-hid-check\)", out), out
     n = resets(pico)
     time.sleep(5)

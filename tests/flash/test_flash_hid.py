@@ -63,7 +63,7 @@ def test_the_version_comes_back_over_hid_from_the_running_firmware(monkeypatch):
     info = F.boot_check_hid("PORT", "sim://steady", F.fw_version(), 60, said.append)
     assert calls == ["connect", "reset"]  # reset once; the board keeps running afterwards
     assert info.firmware == F.fw_version() and info.board == "pico-stmisola"
-    assert said[0].startswith(f"[7/7] boot check over HID (sim://steady): steadytouch {F.fw_version()} on "
+    assert said[0].startswith(f"[8/8] boot check over HID (sim://steady): steadytouch {F.fw_version()} on "
                               "pico-stmisola answered GET_INFO, the version flashed; ")
     n = int(said[0].split("; ")[1].split()[0])
     assert n > 0 and "no firmware error" in said[0]

@@ -128,7 +128,7 @@ def test_dry_run_lists_everything_and_stops_on_missing_libraries(tmp_path):
     env = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
     p = run("flash", "--dry-run", "--build-dir", str(tmp_path / "dev"), env=env)
     assert p.returncode == 2 and "Traceback" not in p.stderr
-    assert "[1/7] compile" in p.stdout and "[2/7] libraries: missing" in p.stdout and "--online" in p.stdout
+    assert "[1/8] compile" in p.stdout and "[2/8] libraries: missing" in p.stdout and "--online" in p.stdout
     assert ":/stim.mpy" in p.stdout and ":/main.py" in p.stdout and "board_sim" not in p.stdout
     assert "flash would stop there" in p.stderr
     p = run("flash", "--dry-run", "--online", "--build-dir", str(tmp_path / "dev"), env=env)

@@ -1,0 +1,181 @@
+"""`steadytouch flash` checks the board's stored correction (/vmon_cal.txt, `steadytouch selftest`)
+before it changes anything (issue 13, deliverable 4's loose ends): the file is read over the REPL
+link and judged by the new firmware's own parser (firmware/vmon_cal.py) for the build's channel
+count; one line says what the new firmware will do with it at boot (none stored / loaded / ignored),
+and a file it would ignore stops the flash before anything is copied (--ignore-stored-correction
+flashes anyway); --dry-run shows the same verdict. The board's link is faked here (the emulated
+Pico's case: tests/flash/test_flash_emulated.py)."""
+
+import pytest
+
+import hid_protocol as hp
+from steadytouch import boardlib
+from steadytouch import cli
+from steadytouch import flash as F
+
+HEADER = "steadytouch monitor correction v1\n"
+GOOD = HEADER + "0 1011000 150 1006000\n1 990000 -40 0\n3 1000000 0 1000000\n"  # ch3: a 4-channel build's line
+OUT_OF_WINDOW = HEADER + "0 1095000 0 0\n1 990000 -40 0\n"  # stored under the old, wider windows
+CORRUPT = b"steadytouch monitor correction v1\n0 10110\xff\xfe00\n"
+FILES = {"good": GOOD.encode(), "out of window": OUT_OF_WINDOW.encode(), "corrupt": CORRUPT,
+         "garbage": b"not a correction\n", "none": None}
+
+
+class FakeLink:
+    """The board's REPL link: answers the correction read with `data`, records what would change the board."""
+
+    def __init__(self, data, log):
+        self.data, self.log = data, log
+
+    def eval(self, code):
+        assert code == F._READ_VMON, code
+        self.log.append("read")
+        return self.data
+
+    def hashes(self, paths):
+        return {p: "same" for p in paths}  # every file already on the board: nothing to copy
+
+    def exec(self, code):
+        self.log.append("exec")
+        return ""
+
+    def write(self, path, data):
+        self.log.append(("write", path))
+
+    def remove(self, paths):
+        self.log.append(("remove", tuple(paths)))
+
+    def reset(self):
+        self.log.append("reset")
+
+    def close(self):
+        pass
+
+
+@pytest.fixture
+def board(monkeypatch, tmp_path):
+    """flash() against a fake board holding `board.data` as /vmon_cal.txt; board.log records what happened."""
+    class Board:
+        data = None
+        log = []
+
+    monkeypatch.setattr(boardlib, "locate", lambda *a: ({}, "from a test"))
+    main = tmp_path / "main.py"
+    main.write_text("# test\n")
+
+    def build(out, libs=None):
+        b = F.Build(out)
+        b.files["/main.py"] = main
+        return b
+
+    state = F.BoardState(platform="rp2", version=(1, 28, 0), machine="Raspberry Pi Pico with RP2040", mpy=6,
+                         log=None)
+    monkeypatch.setattr(F, "build", build)
+    monkeypatch.setattr(F, "mpy_cross_version", lambda: "mpy-cross")
+    monkeypatch.setattr(F, "connect", lambda port, timeout_s, tries=3: (FakeLink(Board.data, Board.log), state))
+    monkeypatch.setattr(F, "_deploy", lambda link, b, say: Board.log.append("deploy"))
+    monkeypatch.setattr(F, "boot_check", lambda *a, **k: Board.log.append("boot check"))
+    monkeypatch.setattr(F, "find_port", lambda: "/dev/ttyACM9")
+    return Board
+
+
+def flash(board, data, *args):
+    board.data = data
+    board.log.clear()
+    return cli.main(["flash", "--port", "PORT", "--no-hid-check", *args])
+
+
+def test_the_verdict_names_what_the_new_firmware_does_with_each_file():
+    n = 2
+    v = {k: F.judge_correction(d, n) for k, d in FILES.items()}
+    assert [v[k].state for k in FILES] == ["loaded", "ignored", "ignored", "ignored", "none"]
+    assert v["good"].line == ("stored correction /vmon_cal.txt: the new firmware loads it at boot (2 channels): ch0 "
+                              "monitor gain 1.0110 offset +150 mV, DAC gain 1.0060; ch1 monitor gain 0.9900 offset "
+                              "-40 mV, DAC gain not measured (hard limits held x 0.965 while a channel has no DAC "
+                              "gain); kept in the file, unused by this build: ch3")
+    four = F.judge_correction(FILES["good"], 4).line  # a 4-channel build loads ch3's line
+    assert "ch2 none; ch3 monitor gain 1.0000 offset +0 mV, DAC gain 1.0000" in four and "kept in the file" not in four
+    bad = v["out of window"]
+    assert bad.why.startswith("correction file line 2: gain 1095000 ppm") and "out of range" in bad.why
+    assert "the accepted window: monitor gain 0.91-1.09, offset -1200..+1200 mV, DAC gain 0.965-1.035" in bad.line
+    assert bad.line.endswith("the board would boot with its hard limits held x 0.965 and every monitor uncorrected")
+    assert v["corrupt"].why == "not UTF-8 text" and "first line must be" in v["garbage"].why
+    assert "none on the board (/vmon_cal.txt)" in v["none"].line and "held x 0.965" in v["none"].line
+    for c in v.values():
+        assert "\n" not in c.line
+
+
+def test_the_verdict_is_the_firmwares_own_boot_rule():
+    """The host judges with firmware/vmon_cal.py itself: ignored exactly when the firmware's boot_load says BAD."""
+    import sys
+
+    from conftest import FIRMWARE
+
+    sys.path.insert(0, str(FIRMWARE))
+    try:
+        import vmon_cal
+    finally:
+        sys.path.remove(str(FIRMWARE))
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "vmon_cal.txt"
+        for name, data in FILES.items():
+            if data is None:
+                continue
+            p.write_bytes(data)
+            _, state = vmon_cal.boot_load(str(p), 2)
+            assert (state == hp.VMON_BAD) == (F.judge_correction(data, 2).state == "ignored"), name
+
+
+@pytest.mark.parametrize("name", ["good", "none"])
+def test_a_file_the_new_firmware_loads_or_none_is_one_line_and_the_flash_goes_on(board, capsys, name):
+    assert flash(board, FILES[name]) == 0
+    out = capsys.readouterr().out
+    step5 = [ln for ln in out.splitlines() if ln.startswith("[5/8] ")]
+    assert step5 == ["[5/8] " + F.judge_correction(FILES[name], F.build_channels()).line], out
+    assert board.log == ["read", "deploy", "boot check"]
+
+
+@pytest.mark.parametrize("name", ["out of window", "corrupt", "garbage"])
+def test_a_file_the_new_firmware_would_ignore_stops_before_anything_is_copied(board, capsys, name):
+    assert flash(board, FILES[name]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in cap.err, cap.err
+    assert "stopped before copying anything: the board's stored correction /vmon_cal.txt would be ignored by " \
+           f"firmware {F.fw_version()} (" in err[0]
+    assert "--ignore-stored-correction" in err[0] and "steadytouch selftest" in err[0]
+    assert F.judge_correction(FILES[name], 2).why in err[0]
+    assert "[5/8] stored correction /vmon_cal.txt: the new firmware would ignore it at boot" in cap.out
+    assert board.log == ["read", "reset"]  # nothing written, nothing removed; the board runs what it ran
+
+
+def test_ignore_stored_correction_flashes_anyway_and_says_what_to_run(board, capsys):
+    assert flash(board, FILES["out of window"], "--ignore-stored-correction") == 0
+    out = capsys.readouterr().out
+    assert "flashing anyway (--ignore-stored-correction): run `steadytouch selftest" in out
+    assert board.log == ["read", "deploy", "boot check"]
+
+
+@pytest.mark.parametrize("name, rc", [("good", 0), ("none", 0), ("out of window", 2), ("corrupt", 2)])
+def test_dry_run_shows_the_same_verdict_and_copies_nothing(board, capsys, name, rc):
+    assert flash(board, FILES[name], "--dry-run") == rc
+    cap = capsys.readouterr()
+    verdict = F.judge_correction(FILES[name], F.build_channels())
+    assert f"on PORT now (read over its REPL; its program was stopped for it and restarted): {verdict.line}" in cap.out
+    assert board.log == ["read", "reset"]
+    if rc:
+        assert len(cap.err.strip().splitlines()) == 1 and "flash would stop here, before copying anything" in cap.err
+        assert "--ignore-stored-correction" in cap.err
+    assert flash(board, FILES[name], "--dry-run", "--ignore-stored-correction") == 0
+
+
+def test_dry_run_without_a_board_says_the_correction_was_not_checked(board, capsys, monkeypatch):
+    def no_board(port, timeout_s, tries=3):
+        raise F.FlashError(f"no board at {port} (could not open port)")
+
+    monkeypatch.setattr(F, "connect", no_board)
+    assert cli.main(["flash", "--port", "PORT", "--dry-run"]) == 0
+    assert "stored correction: not checked (no board reached: no board at PORT" in capsys.readouterr().out
