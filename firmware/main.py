@@ -201,11 +201,13 @@ def auto_refused(s, cmd, res, detail, i0, t0, x, y):
     held = s.no_dac_gain() and (s.held_limit(0) < i0 <= s.hard_i or s.held_limit(1) < i0 * t0 <= s.hard_q)
     why = ""
     if held and s.takes_dac_gain():
-        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; `steadytouch selftest "
-               "--load-ohm OHMS --scope` measures it and lifts the hold)" % (s.held_limit(0), s.held_limit(1)))
+        why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; the board's own are %d uA, "
+               "%d pC; `steadytouch selftest --load-ohm OHMS --scope` measures it and lifts the hold)"
+               % (s.held_limit(0), s.held_limit(1), s.hard_i, s.hard_q))
     elif held:
         why = (" (its hard limits are held at %d uA, %d pC: no DAC gain is applied, this board's DAC path "
-               "takes none)" % (s.held_limit(0), s.held_limit(1)))
+               "takes none; the board's own are %d uA, %d pC)" % (s.held_limit(0), s.held_limit(1), s.hard_i,
+                                                                  s.hard_q))
     if cmd == hp.CMD_CALIBRATE and res == hp.RES_OUT_OF_RANGE:
         if detail == hp.O_ARG:
             return "I0 %d uA out of range: the device accepts %d..%d uA%s" % (i0, lim[0], lim[1], why)

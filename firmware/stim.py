@@ -284,6 +284,9 @@ class Stimulator:
         t_min = max(hp.T_FLOOR_US, min(cfg.T_MIN_US, t_max))
         lim = [max(1, min(cfg.I_MIN_UA, cfg.HARD_I_MAX_UA)), cfg.HARD_I_MAX_UA, t_min, t_max, cfg.HARD_Q_MAX_PC]
         self.lim = lim  # soft limits: i_min, i_max, t_min, t_max, q_max
+        # the soft i_min, i_max and q_max as last set (board_config at boot, then SET_LIMITS):
+        # lim's are these, lowered to the hard limits in force (_fit_limits); GET_INFO page 1
+        self.lim_set = [lim[0], lim[1], lim[4]]
         self.chans = [Channel(k, lim) for k in range(n)]
         for c in self.chans:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
@@ -729,6 +732,9 @@ class Stimulator:
         return result
 
     def _info(self, r):
+        page = r[hp.O_ARG]  # 0: the limits in force; INFO_PAGE_OWN: the board's own (hid_protocol)
+        if page > hp.INFO_PAGE_OWN:
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG)
         b = self._head(hp.REP_INFO)
         b[hp.O_CMD] = r[hp.O_OUT_CMD]
         b[hp.O_RESULT] = hp.RES_OK
@@ -739,16 +745,25 @@ class Stimulator:
         b[hp.O_FW + 3] = self.n
         # the hard current and charge limits in force: held below the board's nominal ones while
         # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (held_limit)
-        hp.put_u16(b, hp.O_HARD_I, self.held_limit(0))
         hp.put_u16(b, hp.O_HARD_T, self.hard_t)
-        hp.put_i32(b, hp.O_HARD_Q, self.held_limit(1))
         hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
         lim = self.lim
-        hp.put_u16(b, hp.O_LIM, lim[0])
-        hp.put_u16(b, hp.O_LIM + 2, lim[1])
         hp.put_u16(b, hp.O_LIM + 4, lim[2])
         hp.put_u16(b, hp.O_LIM + 6, lim[3])
-        hp.put_i32(b, hp.O_LIM + 8, lim[4])
+        if page:  # the board's own: its nominal hard limits, the soft ones as last set
+            b[hp.O_INFO_PAGE] = page
+            hp.put_u16(b, hp.O_HARD_I, self.hard_i)
+            hp.put_i32(b, hp.O_HARD_Q, self.hard_q)
+            lim = self.lim_set
+            hp.put_u16(b, hp.O_LIM, lim[0])
+            hp.put_u16(b, hp.O_LIM + 2, lim[1])
+            hp.put_i32(b, hp.O_LIM + 8, lim[2])
+        else:
+            hp.put_u16(b, hp.O_HARD_I, self.held_limit(0))
+            hp.put_i32(b, hp.O_HARD_Q, self.held_limit(1))
+            hp.put_u16(b, hp.O_LIM, lim[0])
+            hp.put_u16(b, hp.O_LIM + 2, lim[1])
+            hp.put_i32(b, hp.O_LIM + 8, lim[4])
         b[hp.O_INFO_MODE] = self.mode
         b[hp.O_INFO_RATE] = self.rate_hz
         hp.put_u16(b, hp.O_INFO_KEEPALIVE, self.keepalive_ms)
@@ -983,6 +998,10 @@ class Stimulator:
         lim[2] = t_min
         lim[3] = t_max
         lim[4] = q_max
+        lim = self.lim_set
+        lim[0] = i_min
+        lim[1] = i_max
+        lim[2] = q_max
         k = 0
         while k < self.n:  # validated above against the same rules: cannot raise
             self.chans[k].ctl.set_limits(i_min, i_max, t_min, t_max, q_max)

@@ -187,14 +187,23 @@ def cmd_info(a) -> int:
         if not i.reports_held_limits:
             say(f"  firmware {i.firmware} reports the board's nominal hard limits even where they are held (a "
                 "channel with no DAC gain latches above x 0.965 at the gate): `steadytouch flash` updates it")
+        own = d.own_limits() if i.reports_held_limits else None  # GET_INFO page 1 (None: firmware before it)
         if i.held:
-            say(f"  held: {held_reason(i.dac_gain_applied)}")
+            say(f"  held: {held_reason(i.dac_gain_applied, i.nominal)}")
         elif i.dac_low:
             low = [f"ch{ch} {c.dac_gain_ppm / 1e6:.4f}" for ch in range(i.n_channels)
                    for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < 1000000]
+            mine = "; the board's own: I {} uA, Q {} pC".format(*i.nominal) if i.nominal else ""
             say(f"  lowered: the board's own limits x the DAC gain below 1 measured ({', '.join(low)}): the current "
-                "it reports is the delivered one")
-        say(f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC")
+                f"it reports is the delivered one{mine}")
+        if (i.held or i.dac_low) and own is None:
+            say(f"  firmware {i.firmware} does not report the board's own limits beside the lowered ones (GET_INFO "
+                "page 1): `steadytouch flash` updates it")
+        soft = f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC"
+        if own is not None and (own.i_min_ua, own.i_max_ua, own.q_max_pc) != (i.i_min_ua, i.i_max_ua, i.q_max_pc):
+            soft += (f" (set: I {own.i_min_ua}-{own.i_max_ua} uA, Q <= {own.q_max_pc} pC; lowered to the hard "
+                     "limits in force, `steadytouch limits` or `selftest --scope` sets them again)")
+        say(soft)
         say(f"  mode {MODE_WORDS.get(i.mode, i.mode)}, {i.rate_hz} Hz, "
             f"keep-alive {'off' if not i.keepalive_ms else str(i.keepalive_ms) + ' ms'}")
         for ch in range(i.n_channels):
@@ -433,7 +442,7 @@ def _why_not_higher(i: Info, beyond_hard: bool, sim: bool = False) -> str:
     """Why a value above the device's soft limits is refused: the hard limits it reports (held for want of a DAC
     gain: say so and how to lift it), or soft limits `steadytouch limits` may raise (sim: board_config's)."""
     if beyond_hard and i.held:
-        return f"; {held_reason(i.dac_gain_applied)}"
+        return f"; {held_reason(i.dac_gain_applied, i.nominal)}"
     if beyond_hard:
         return " (the board's hard limits)"
     if sim:

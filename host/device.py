@@ -12,6 +12,7 @@ run: keep-alive on, DISARM on the way out whatever ends it."""
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import threading
 import time
@@ -60,6 +61,7 @@ class Device:
         self._ka_every_s = 0.0
         self._last_write = time.monotonic()
         self.disarmed: bool | None = None  # after live(): whether the closing DISARM was acknowledged
+        self._own_hard: tuple | None = None  # the board's own hard limits (page 1), once asked; () none told
 
     def _write(self, report: bytes) -> None:
         self.t.write(report)
@@ -184,9 +186,24 @@ class Device:
 
     # convenience wrappers, each waiting for its ack
     def info(self) -> Info:
+        """GET_INFO: the limits in force. Where they are below the board's own (held, or lowered by a DAC gain
+        below 1) the board's own hard limits are asked once (page 1) and carried (Info.nominal), so every
+        refusal and `info` name both."""
         info = self.command(self.cmds.get_info())
+        if info.lowered_reason() and self._own_hard is None:
+            own = self.own_limits()
+            self._own_hard = (own.hard_i_max_ua, own.hard_q_max_pc) if own is not None else ()
+        if self._own_hard:
+            info = dataclasses.replace(info, own_hard=self._own_hard)
         self.cmds.know(info)  # from now on a rate or t_max that cannot fit is refused on the host
         return info
+
+    def own_limits(self) -> Info | None:
+        """GET_INFO page 1 (hid_protocol INFO_PAGE_OWN): the board's nominal hard limits and its soft limits as
+        last set, before the firmware lowered them to the hard limits in force. None from firmware before it
+        (it answers page 0)."""
+        own = self.command(self.cmds.get_info(page=hp.INFO_PAGE_OWN))
+        return own if own.page == hp.INFO_PAGE_OWN else None
 
     def calibration(self, ch: int) -> CalInfo:
         return self.command(self.cmds.get_info(ch))

@@ -132,6 +132,18 @@ class Info:
     result: int = hp.RES_OK
     vmon_state: int = hp.VMON_NONE  # what the board's flash held at boot (VMON_STATE_WORDS)
     flags: int = 0  # hp.INFO_FLAG_* (O_INFO_FLAGS)
+    # 0: the limits in force; hp.INFO_PAGE_OWN: the board's own (GET_INFO page 1: hard_* its nominal
+    # hard limits, i_min/i_max/q_max the soft ones as last set, before the firmware lowered them)
+    page: int = 0
+    own_hard: tuple[int, int] | None = None  # page 0: the board's own hard limits from its page 1 (Device.info)
+
+    @property
+    def nominal(self) -> tuple[int, int] | None:
+        """The board's own hard current and charge limits (uA, pC), not held: None if not known
+        (firmware before GET_INFO page 1, or not asked)."""
+        if self.page == hp.INFO_PAGE_OWN:
+            return self.hard_i_max_ua, self.hard_q_max_pc
+        return self.own_hard
 
     @property
     def ok(self) -> bool:
@@ -162,11 +174,13 @@ class Info:
         return bool(self.flags & hp.INFO_FLAG_DAC_LOW)
 
     def lowered_reason(self) -> str:
-        """Why the hard current and charge limits are below the board's own, or '' (neither flag)."""
+        """Why the hard current and charge limits are below the board's own, or '' (neither flag);
+        the board's own limits named when known (nominal)."""
         if self.held:
-            return held_reason(self.dac_gain_applied)
+            return held_reason(self.dac_gain_applied, self.nominal)
         if self.dac_low:
-            return DAC_LOW_REASON
+            return DAC_LOW_REASON + (" (the board's own: I {} uA, Q {} pC)".format(*self.nominal)
+                                     if self.nominal else "")
         return ""
 
 
@@ -178,13 +192,15 @@ DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 me
                   "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
 
 
-def held_reason(takes_dac_gain: bool = True) -> str:
-    """Why a board's hard current and charge limits are held (Info.held), and how to lift it: one phrase. The
-    advice to measure the DAC gain only for a board whose DAC path applies one (Info.dac_gain_applied)."""
+def held_reason(takes_dac_gain: bool = True, nominal: tuple[int, int] | None = None) -> str:
+    """Why a board's hard current and charge limits are held (Info.held), and how to lift it: one phrase, with
+    the board's own limits (nominal: (uA, pC), GET_INFO page 1) when known. The advice to measure the DAC gain
+    only for a board whose DAC path applies one (Info.dac_gain_applied)."""
+    own = "the board's own" + (" (I {} uA, Q {} pC)".format(*nominal) if nominal else "")
     if not takes_dac_gain:
-        return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain is applied "
+        return (f"its hard limits are held {HELD_PCT:g} % below {own} because no DAC gain is applied "
                 "(this board's DAC path takes none: the hold stays)")
-    return (f"its hard limits are held {HELD_PCT:g} % below the board's own because no DAC gain was measured "
+    return (f"its hard limits are held {HELD_PCT:g} % below {own} because no DAC gain was measured "
             "(run `steadytouch selftest --load-ohm OHMS --scope` to measure it and lift the hold)")
 
 
@@ -334,7 +350,9 @@ def decode(report: bytes):
             result=report[hp.O_RESULT],
             vmon_state=report[hp.O_INFO_VMON],
             flags=report[hp.O_INFO_FLAGS],
+            page=report[hp.O_INFO_PAGE],
         )
+        _need(i.page <= hp.INFO_PAGE_OWN, "page", i.page, f"0..{hp.INFO_PAGE_OWN}")
         # flags: bits this host does not know are ignored (a later firmware may add one; docs/protocol.md)
         _need(i.vmon_state in VMON_STATE_WORDS, "vmon_state", i.vmon_state, f"0..{max(VMON_STATE_WORDS)}")
         _check_info(i)
@@ -631,5 +649,10 @@ class Commands:
             timeout_ms = _in("keepalive timeout_ms", timeout_ms, *KEEPALIVE_RANGE_MS, "ms")
         return bytes(hp.cmd_keepalive(bytearray(64), timeout_ms, self._next()))
 
-    def get_info(self, ch=hp.CH_ALL) -> bytes:
-        return bytes(hp.cmd_get_info(bytearray(64), self._next(), self._ch(ch)))
+    def get_info(self, ch=hp.CH_ALL, page=0) -> bytes:
+        """GET_INFO: the limits in force (page 0), the board's own (page hp.INFO_PAGE_OWN, CH_ALL only), or
+        channel ch's calibration."""
+        if page not in (0, hp.INFO_PAGE_OWN) or (page and ch != hp.CH_ALL):
+            raise CommandError(f"page={page!r} out of range: 0, or {hp.INFO_PAGE_OWN} (the board's own limits, "
+                               "every channel)")
+        return bytes(hp.cmd_get_info(bytearray(64), self._next(), self._ch(ch), page))

@@ -312,7 +312,7 @@ def restore_limits(d, before, say) -> None:
     if i_max < before.i_max_ua or q_max < before.q_max_pc or i_min < before.i_min_ua:
         from .protocol import held_reason
 
-        why = held_reason(now.dac_gain_applied) if now.held else "the hard limits the device reports are lower"
+        why = held_reason(now.dac_gain_applied, now.nominal) if now.held else "the hard limits the device reports are lower"
         say(f"soft limits now I {i_min}..{i_max} uA, T {t_min}..{t_max} us, Q <= {q_max} pC (were I "
             f"{before.i_min_ua}..{before.i_max_ua} uA, Q <= {before.q_max_pc} pC): {why}")
 

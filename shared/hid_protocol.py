@@ -235,6 +235,14 @@ INFO_FLAG_HELD = const(0x02)
 # channel (not held: every channel has its gain; REP_CAL's O_CAL_DAC_GAIN says which)
 INFO_FLAG_DAC_LOW = const(0x04)
 # (other bits: for later firmware; a host ignores bits it does not know)
+# GET_INFO (CH_ALL) with O_ARG = INFO_PAGE_OWN asks for the board's own limits: the same
+# REP_INFO layout with O_INFO_PAGE = 1, O_HARD_I / O_HARD_Q the board's nominal hard limits
+# (board_config, never held) and O_LIM the soft limits as last set (at boot: board_config's;
+# then SET_LIMITS), before the firmware lowered them to the hard limits in force. Firmware
+# before it answers page 0 (O_INFO_PAGE 0) whatever O_ARG holds; a page > 1 is refused
+# (RES_OUT_OF_RANGE, O_ARG).
+O_INFO_PAGE = const(62)  # u8 (IN reports carry no CRC): 0 the limits in force, 1 the board's own
+INFO_PAGE_OWN = const(1)
 # calibration report (REP_CAL)
 O_CAL_CH = const(12)
 O_CAL_FLAGS = const(13)  # 0x01 calibration received, 0x02 armed, 0x04 Rp0 measured, 0x08 monitor corrected,
@@ -432,6 +440,8 @@ def cmd_keepalive(b, timeout_ms=0, tag=0):
     return b
 
 
-def cmd_get_info(b, tag=0, ch=CH_ALL):
-    seal(_cmd(b, CMD_GET_INFO, ch, tag))
+def cmd_get_info(b, tag=0, ch=CH_ALL, page=0):
+    _cmd(b, CMD_GET_INFO, ch, tag)
+    b[O_ARG] = page
+    seal(b)
     return b

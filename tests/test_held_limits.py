@@ -374,3 +374,106 @@ def test_the_advice_to_measure_the_dac_gain_only_for_a_board_that_takes_one():
     with pytest.raises(CommandError) as e:
         c.set_limits(500, HELD_I + 1, 100, 4000, 5_000_000)
     assert "the hold stays" in str(e.value) and "selftest" not in str(e.value)
+
+
+def test_get_info_page_1_reports_the_boards_own_limits_beside_the_held_ones(tmp_path):
+    """Issue 13 (deliverable 4's loose ends): GET_INFO carried only the held hard limits, so no host could show
+    the board's own. Page 1 (O_ARG = INFO_PAGE_OWN, answered inside the heap-locked frame) carries the nominal
+    hard limits and the soft limits as last set; page 0 is unchanged; a page > 1 is refused and changes nothing.
+    A SET_VMON that lowers the soft limits in force leaves the ones set as they were."""
+    _, res, _ = run_fw(SETUP + """
+s, bd, clock = board()
+b = bytearray(64)
+r = {}
+r["p0"] = framed(s, hp.cmd_get_info(b, 1))
+r["p1"] = framed(s, hp.cmd_get_info(b, 2, hp.CH_ALL, hp.INFO_PAGE_OWN))
+before = limits(s)
+r["p2"] = framed(s, hp.cmd_get_info(b, 3, hp.CH_ALL, 2))
+r["same"] = limits(s) == before
+r["set"] = framed(s, hp.cmd_set_limits(b, 400, 9000, 50, 4000, 9000000))
+r["p1_set"] = framed(s, hp.cmd_get_info(b, 4, hp.CH_ALL, hp.INFO_PAGE_OWN))
+r["gain"] = framed(s, hp.cmd_set_vmon_all(b, hp.VMON_APPLY, [(0, 0, 1000000), (0, 0, 1000000)]))
+r["full"] = framed(s, hp.cmd_set_limits(b, 400, 10000, 50, 4000, 10000000))
+r["drop"] = framed(s, hp.cmd_set_vmon(b, 1, hp.VMON_APPLY, 0, 0))  # ch1's gain removed: held, lowered
+r["p0_low"] = framed(s, hp.cmd_get_info(b, 5))
+r["p1_low"] = framed(s, hp.cmd_get_info(b, 6, hp.CH_ALL, hp.INFO_PAGE_OWN))
+result(**r)
+""")
+    r = res[0]
+    p0, p1 = _info(r["p0"]), _info(r["p1"])
+    assert (p0.page, p0.hard_i_max_ua, p0.hard_q_max_pc, p0.i_max_ua, p0.q_max_pc) == (0, HELD_I, HELD_Q, HELD_I, HELD_Q)
+    assert (p1.page, p1.hard_i_max_ua, p1.hard_q_max_pc, p1.i_max_ua, p1.q_max_pc) == (1, HARD_I, HARD_Q, HARD_I, HARD_Q)
+    assert p1.nominal == (HARD_I, HARD_Q) and p0.nominal is None  # (page 0 alone: not known)
+    assert (p1.hard_t_max_us, p1.t_min_us, p1.t_max_us, p1.flags, p1.board) == (
+        p0.hard_t_max_us, p0.t_min_us, p0.t_max_us, p0.flags, p0.board)
+    assert _ack(r["p2"]) == (hp.CMD_GET_INFO, hp.RES_OUT_OF_RANGE, hp.O_ARG) and r["same"]
+    assert _ack(r["set"])[1] == hp.RES_OK
+    p1 = _info(r["p1_set"])
+    assert (p1.i_min_ua, p1.i_max_ua, p1.q_max_pc, p1.hard_i_max_ua) == (400, 9000, 9_000_000, HARD_I)
+    assert [_ack(r[k])[1] for k in ("gain", "full", "drop")] == [hp.RES_OK] * 3
+    low, own = _info(r["p0_low"]), _info(r["p1_low"])
+    assert (low.held, low.i_max_ua, low.q_max_pc) == (True, HELD_I, HELD_Q)  # lowered in force ...
+    assert (own.i_min_ua, own.i_max_ua, own.q_max_pc) == (400, HARD_I, HARD_Q)  # ... as set: kept
+
+
+class _OldFirmware:
+    """A transport whose device ignores GET_INFO's page byte, as firmware before page 1 does (it answers page 0)."""
+
+    def __init__(self, t):
+        self.t = t
+
+    def write(self, rep):
+        rep = bytearray(rep)
+        if rep[0] == hp.CMD_GET_INFO and rep[hp.O_ARG]:
+            rep[hp.O_ARG] = 0
+            hp.seal(rep)
+        self.t.write(bytes(rep))
+
+    def __getattr__(self, name):
+        return getattr(self.t, name)
+
+
+def test_the_host_names_the_boards_own_limit_beside_the_held_one_and_copes_with_older_firmware(tmp_path):
+    """`info`, and the one-line refusals of `limits` and `calibrate`, name the board's own hard limits (GET_INFO
+    page 1) beside the held ones; `info` shows the soft limits as set where the firmware lowered them. A firmware
+    that answers page 0 to page 1 (before it) is told apart: no nominal, one line saying `flash` updates it."""
+    from steadytouch.device import Device
+    from steadytouch.protocol import CommandError
+    from steadytouch.transport import open_transport
+
+    import pytest
+
+    url = "sim://steady?channels=2"
+    p = run_cli("info", "--device", url)
+    assert p.returncode == 0, p.stderr
+    assert f"held: its hard limits are held 3.5 % below the board's own (I {HARD_I} uA, Q {HARD_Q} pC) because no " \
+           "DAC gain was measured" in p.stdout, p.stdout
+    assert (f"soft limits: I 500-{HELD_I} uA, T 100-8000 us, Q <= {HELD_Q} pC (set: I 500-{HARD_I} uA, Q <= {HARD_Q} pC; "
+            "lowered to the hard limits in force") in p.stdout, p.stdout
+    for args, words in (
+            (["limits", "--i-min-ua", "500", "--i-max-ua", "9800", "--t-min-us", "100", "--t-max-us", "4000",
+              "--q-max-pc", "5000000"], f"i_max_ua=9800 out of range: the device accepts 1..{HELD_I} uA"),
+            (["calibrate", "--i0-ua", "9800", "--t0-us", "100", "--x-star-ohm", "-1670", "--y-star-pc", "0"],
+             f"i0_ua=9800 out of range: the device's soft limits are 500..{HELD_I} uA")):
+        p = run_cli(*args, "--device", url)
+        err = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(err) == 1 and words in err[0], (args, p.stderr)
+        assert f"held 3.5 % below the board's own (I {HARD_I} uA, Q {HARD_Q} pC)" in err[0], err
+    with open_transport(url) as t:
+        d = Device(t)
+        assert d.info().nominal == (HARD_I, HARD_Q) and d.own_limits().i_max_ua == HARD_I
+        old = Device(_OldFirmware(t))
+        i = old.info()
+        assert i.held and i.nominal is None and old.own_limits() is None
+        assert "below the board's own because no DAC gain was measured" in i.lowered_reason()
+        with pytest.raises(CommandError, match=r"the board's own because no DAC gain"):
+            old.limits(500, 9800, 100, 4000, 5_000_000)
+        with pytest.raises(CommandError, match="page"):
+            d.cmds.get_info(0, page=1)
+    bad = bytearray(64)
+    bad[0] = hp.REP_INFO
+    from steadytouch.protocol import ProtocolError
+    with pytest.raises(ProtocolError, match="page=2"):
+        good = bytes.fromhex(run_fw(SETUP + "s, bd, clock = board()\nresult(x=framed(s, hp.cmd_get_info(bytearray(64))))"
+                                    )[1][0]["x"])
+        decode(good[:hp.O_INFO_PAGE] + b"\x02" + good[hp.O_INFO_PAGE + 1:])
