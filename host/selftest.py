@@ -294,27 +294,38 @@ def put_back(d, old: dict, n_channels: int) -> None:
 
 
 def restore_limits(d, before, say) -> None:
-    """The soft limits the device had before the self-test (`before`: its GET_INFO then) set again
-    with SET_LIMITS: the self-test switches the correction off in RAM while it runs, which holds
-    them (the firmware lowers them to the held hard limits, and never raises them again). Capped
-    at the hard limits in force now (GET_INFO read again); a soft limit that stood at the hard
-    limit held then follows the hard limit (a stored DAC gain lifts the hold: the full limit).
-    One line when they could not be restored in full."""
+    """The soft limits set again after the self-test (`before`: the device's GET_INFO before it ran): the
+    self-test switches the correction off in RAM while it measures, which holds the hard limits, and the
+    firmware lowers the soft ones in force to them and never raises them by itself. The soft limits wanted
+    are the ones as set (GET_INFO page 1: a user's SET_LIMITS, or board_config's at boot), capped at the hard
+    limits in force now: a limit the hold had lowered comes back once a stored DAC gain lifts the hold,
+    and one a user set at the held value stays there (page 1 tells the two apart; page 0 cannot). Firmware
+    before page 1: `before`'s limits, capped, never raised above them (the safe side), and one line says so
+    when the hold was lifted. SET_LIMITS only when something differs; one line when the soft limits could not
+    be given back in full."""
     now = d.info()
+    own = d.own_limits() if now.reports_held_limits else None
     hi, hq = now.hard_i_max_ua, now.hard_q_max_pc
-    i_max = hi if before.held and before.i_max_ua >= before.hard_i_max_ua else min(before.i_max_ua, hi)
-    q_max = hq if before.held and before.q_max_pc >= before.hard_q_max_pc else min(before.q_max_pc, hq)
     t_min, t_max = before.t_min_us, before.t_max_us
-    i_min = min(before.i_min_ua, i_max, q_max // t_min)
+    if own is not None:
+        i_max, q_max, i_min = min(own.i_max_ua, hi), min(own.q_max_pc, hq), own.i_min_ua
+    else:
+        i_max, q_max, i_min = min(before.i_max_ua, hi), min(before.q_max_pc, hq), before.i_min_ua
+    i_min = min(i_min, i_max, q_max // t_min)
     want = (i_min, i_max, t_min, t_max, q_max)
     if (now.i_min_ua, now.i_max_ua, now.t_min_us, now.t_max_us, now.q_max_pc) != want:
         d.limits(*want)
     if i_max < before.i_max_ua or q_max < before.q_max_pc or i_min < before.i_min_ua:
         from .protocol import held_reason
 
-        why = held_reason(now.dac_gain_applied, now.nominal) if now.held else "the hard limits the device reports are lower"
+        why = (held_reason(now.dac_gain_applied, now.nominal) if now.held
+               else "the hard limits the device reports are lower")
         say(f"soft limits now I {i_min}..{i_max} uA, T {t_min}..{t_max} us, Q <= {q_max} pC (were I "
             f"{before.i_min_ua}..{before.i_max_ua} uA, Q <= {before.q_max_pc} pC): {why}")
+    elif own is None and before.held and not now.held and (i_max < hi or q_max < hq):
+        say(f"soft limits stay I {i_min}..{i_max} uA, Q <= {q_max} pC (the hard limits are now {hi} uA, {hq} pC): "
+            f"firmware {now.firmware} cannot tell a soft limit set at the held value from one the hold lowered; "
+            "`steadytouch limits` raises them (`steadytouch flash` updates the firmware)")
 
 
 SCOPE_PULSE = (4500, 1000)  # the reference pulse read on the scope: 45 V on 10 kohm, a plateau of 1 ms

@@ -575,3 +575,58 @@ def test_selftest_says_when_the_soft_limits_cannot_be_given_back_in_full(tmp_pat
     line = [s for s in said if s.startswith("soft limits now")]
     assert line == [f"soft limits now I 500..9800 uA, T 100..4000 us, Q <= 9800000 pC (were I 500..9900 uA, "
                     f"Q <= 9900000 pC): the hard limits the device reports are lower"], said
+
+
+def _scope_readings():
+    code = st.SCOPE_PULSE[0] * 4096 // 10000
+    return iter(f"{code * 10000 / 4096 * board_sim.DAC_GAIN[ch] * 10:.1f}" for ch in (0, 1))
+
+
+def test_a_soft_limit_set_at_the_held_value_is_not_raised_by_selftest_scope(tmp_path, monkeypatch):
+    """Issue 13 (deliverable 4's loose ends): a user who set i_max and q_max to exactly the held 9650 uA /
+    9.65 uC got them raised to the full limits by `selftest --scope` (restore_limits could not tell "lowered
+    by the hold" from "set by the user"). GET_INFO page 1 carries the soft limits as set: the user's stay; the
+    board_config ones the hold lowered at boot come back (the next test above, and below on a second board)."""
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        d = Device(t)
+        assert d.info().held
+        assert d.limits(500, 9650, 100, 4000, 9_650_000).ok  # deliberately at the held limits
+        st.run(url, 10000, None, 4, True, None, said.append, _first_is(t), scope=True,
+               ask=lambda p, r=_scope_readings(): next(r))
+        i = d.info()
+        own = d.own_limits()
+    assert not i.held and i.hard_i_max_ua > 9650 and i.hard_q_max_pc > 9_650_000  # the hold is lifted ...
+    # ... not these
+    assert (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc) == (500, 9650, 100, 4000, 9_650_000)
+    assert (own.i_max_ua, own.q_max_pc) == (9650, 9_650_000)
+    assert not any(s.startswith("soft limits") for s in said), said
+
+
+def test_selftest_on_firmware_without_page_1_never_raises_a_soft_limit_and_says_so(tmp_path, monkeypatch):
+    """A firmware that answers GET_INFO page 0 whatever is asked (before page 1): the soft limits are given back as
+    they were before the self-test, capped, never raised (it cannot tell which were set), and one line says how to
+    raise them."""
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    from test_held_limits import _OldFirmware
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        old = _OldFirmware(t)
+        d = Device(old)
+        assert d.info().held and d.own_limits() is None
+        st.run(url, 10000, None, 4, True, None, said.append, _first_is(old), scope=True,
+               ask=lambda p, r=_scope_readings(): next(r))
+        i = d.info()
+    assert not i.held and (i.i_max_ua, i.q_max_pc) == (9650, 9_650_000)
+    line = [s for s in said if s.startswith("soft limits stay")]
+    assert len(line) == 1 and "I 500..9650 uA, Q <= 9650000 pC" in line[0] and "`steadytouch limits` raises" in line[0]
