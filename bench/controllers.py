@@ -374,6 +374,20 @@ def within(rows, target, events, n, tol=0.01):
     return reach, surge, out
 
 
+def first_rise(rows, target, events, n):
+    """Per disturbance that left the felt mQ below target (a rise is needed: gel off, a peel):
+    (mQ - target) / target of the first corrected pulse (pulse 1), else None. Above 0 there is
+    the controller's own overshoot: within()'s surge starts at pulse 2, since after a step down
+    pulse 1 may still be above the target on its way down."""
+    k, i, t, rp, mq, st = rows.T
+    starts = [x.pulse for x in events] + [n]
+    out = []
+    for a, b in zip(starts, starts[1:]):
+        rel = (mq[a:b] - target) / target
+        out.append(float(rel[1]) if b - a > 1 and np.isfinite(rel[0]) and rel[0] < 0 and np.isfinite(rel[1]) else None)
+    return out
+
+
 def metrics(rows, target, me, events, n):
     k, i, t, rp, mq, st = rows.T
     on = i > 0
@@ -450,13 +464,14 @@ def main():
     ap.add_argument("--adc-us", type=int, default=0, help="ADC sample interval (default: board_config's)")
     ap.add_argument("--study", type=int, default=0, metavar="N",
                     help="only the study on N unseen electrodes (steps; 1 %% settling, surges)")
+    ap.add_argument("--seed", type=int, default=7, help="study: the electrodes' seed (7: the primary set; 11-20: validation)")
     ap.add_argument("--surges", action="store_true", help="study: one line per step surging > 5 %% (why)")
     a = ap.parse_args()
     global PEAK, SURGES
     PEAK = a.peak
     SURGES = a.surges
     if a.study:
-        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise)
+        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise, a.seed)
         return
     cases = []
     for name in ("gel-step", "gel", "peel", "exercise", "off"):
@@ -552,7 +567,7 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
     mQ above target after the first corrected pulse."""
     rng = np.random.default_rng(seed)
     corr = selftest_correction(board) if correct else None
-    res = {m: {"settle": [], "surge": [], "seen": [], "out": []} for m in STUDY_MODES}
+    res = {m: {"settle": [], "surge": [], "seen": [], "out": [], "rise1": []} for m in STUDY_MODES}
     trust = []
     skipped = 0
     for k in range(n_electrodes):
@@ -580,6 +595,9 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
                 if su[j] > 0.05 and true_rps.get(name) is not None:
                     res[name].setdefault("why", []).append(surge_detail(k, j, a, b, rows, target, meas, true_rps[name]))
                 res[name]["out"].append(ou[j])
+                r1 = first_rise(rows, target, STUDY_EVENTS, STUDY_N)[j]
+                if r1 is not None:
+                    res[name]["rise1"].append(r1)
                 if meas is not None:  # the controller's own view: measured mQ against its measured target
                     sm, _, _ = within(meas[0], meas[1], STUDY_EVENTS, STUDY_N, tol)
                     res[name]["seen"].append(sm[j] if sm[j] is not None else 10**6)
@@ -613,10 +631,17 @@ def _pct(xs):
     return f"{np.median(a):g} / {np.percentile(a, 90, method='higher'):g}"
 
 
-def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
-    res, trust, skipped = study(n, board, sweeps, correct, adc_us=adc_us, noise=noise)
+def _rise1(xs):
+    if not xs:
+        return "-"
+    a = np.array(xs)
+    return f"{a.max():+.1%} / {int(np.sum(a > 0.05))} / {int(np.sum(a > 0.2))} of {len(a)}"
+
+
+def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0, seed=7):
+    res, trust, skipped = study(n, board, sweeps, correct, seed=seed, adc_us=adc_us, noise=noise)
     total = len(next(iter(res.values()))["settle"])
-    print(f"\n{n} unseen electrodes x 4 steps on the {board} board"
+    print(f"\n{n} unseen electrodes (seed {seed}) x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
           f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{f', peak: {PEAK}' if PEAK != 'firmware' else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
@@ -624,8 +649,9 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")
     print("| mode | felt mQ: pulses to reach 1 %, median / 90th pct / worst | steps never within 1 % | pulses "
           "outside 1 % after reaching it | felt mQ above target after the first corrected pulse: worst / steps > 5 % "
-          "| measured mQ (the controller's view): pulses to 1 %, median / 90th pct |")
-    print("|---|---|---|---|---|---|")
+          "| measured mQ (the controller's view): pulses to 1 %, median / 90th pct "
+          "| rises: the first corrected pulse above target, worst / steps > 5 % / > 20 % |")
+    print("|---|---|---|---|---|---|---|")
     for name, r in res.items():
         st = np.array(r["settle"])
         su = np.array(r["surge"])
@@ -633,7 +659,7 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0):
         fin = np.where(st >= 10**6, np.inf, st)
         print(f"| {name} | {np.median(fin):g} / {np.percentile(fin, 90, method='higher'):g} / {fin.max():g} | {never} | "
               f"{np.mean(r['out']):.0%} | "
-              f"{su.max():+.1%} / {int(np.sum(su > 0.05))} | {_pct(r['seen'])} |")
+              f"{su.max():+.1%} / {int(np.sum(su > 0.05))} | {_pct(r['seen'])} | {_rise1(r['rise1'])} |")
     if SURGES:
         for name, r in res.items():
             for line in r.get("why", []):
