@@ -732,6 +732,43 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
 
 
 @micropython.viper
+def _law_near(vv, lq_k: int, hi: int) -> int:
+    """A rise to the law's root nearest the pulse just measured (log2 charge lq_k): when g
+    there asks for more charge, g at lq_k + 2**15 k (x sqrt 2 in charge) up to hi until it
+    changes sign, and that interval searched; NOROOT if g at lq_k does not ask for more, or
+    if none. For when the search's ends, Q_k/4 and 4 Q_k, have one sign: the law can still
+    cross twice between them (a stable fixed point and an unstable one beyond it, as the
+    calibration point is on an electrode whose mQ is nearly flat along the mE curve); the
+    nearest above Q_k is the one the paper's iteration rises to from here, so the jump never
+    passes it on the model. Rises only (lowering steps: the model-free rules, as before).
+    Each evaluation is a unit of the jump's work."""
+    v = ptr32(vv)
+    x0 = lq_k
+    x = lq_k
+    while True:
+        if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+            v[_V_CUT] = 1
+            return NOROOT
+        v[_V_WORK] += 1
+        gx = int(_root(vv, _K_LAW, x, x - 1, 0))
+        if gx == NOROOT:
+            return NOROOT
+        if gx == 0 and x != lq_k:
+            return x
+        if gx <= 0:
+            if x == lq_k:  # (no rise asked for)
+                return NOROOT
+            v[_V_FB] = gx + _V_BIAS  # [x0, x]: g(x0) > 0 >= g(x), g(x) known
+            return int(_root(vv, _K_LAW + _FB_KNOWN, x0, x, 0))
+        x0 = x
+        x = x0 + 0x8000
+        if x > hi:
+            x = hi
+        if x <= x0:
+            return NOROOT
+
+
+@micropython.viper
 def _law_q(vv, lq_k: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
@@ -778,11 +815,15 @@ def _law_q(vv, lq_k: int) -> int:
                 v[_V_FB] = fb + _V_BIAS
                 kind = _K_LAW + _FB_KNOWN
             n = int(_root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
+            if n == NOROOT and v[_V_CUT] == 0:
+                n = int(_law_near(vv, lq_k, hi))
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
     else:
         n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
+        if n == NOROOT and v[_V_CUT] == 0:
+            n = int(_law_near(vv, lq_k, hi))
         if n == NOROOT:
             return NOROOT
         n += 0x40000

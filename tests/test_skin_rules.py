@@ -64,3 +64,26 @@ def test_gel_coming_off_is_not_left_to_the_model_free_creep():
     assert bench.STEP_NAMES[1].startswith("gel off")
     assert reach[1] is not None and reach[1] <= 3, reach
     assert surge[1] <= 0.05, surge
+
+
+def test_a_law_that_crosses_twice_takes_the_nearest_fixed_point_in_the_steps_direction():
+    """Rule 2's nearest root: issue 13's study, electrode 3 (seed 7), gel off, on the exact
+    bench (no read error) with the averaged, trusted model. Along this electrode's mE curve
+    the felt mQ is within 2.5 % of its target from T = 235 to 3000 us: the law crosses the line
+    at T ~ 245 us (stable) and again at the calibration pulse (T = 1000 us, unstable), so from
+    the pulse at T = 104 us both ends of the search (Q_k/4, 4 Q_k) ask for more charge and the
+    search found no root: every later pulse took the model-free step and crept (7 pulses to
+    1 %). The nearest fixed point in the paper's direction: 2."""
+    rng = np.random.default_rng(7)
+    for _ in range(4):
+        mk = bench.random_electrode(rng)
+    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="exact", sweeps=10,
+                                electrode=mk, seed=1003)
+    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
+    assert bench.STEP_NAMES[1].startswith("gel off")
+    a = bench.STUDY_EVENTS[1].pulse
+    assert rows[a, 2] < 120, rows[a]  # the step starts from a short pulse (T ~ 104 us) ...
+    assert 200 <= rows[a + 2, 2] <= 300, rows[a:a + 3]  # ... and lands near the stable fixed point, not at 1000 us
+    assert reach[1] is not None and reach[1] <= 2, reach
+    assert max(surge) <= 0.05, surge
