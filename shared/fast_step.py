@@ -158,6 +158,13 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
                 if n < _SAT30:
                     kb[_K_MC] = n + 1
                 base = q_k << 4
+                if qf > base and ceiling == 0:  # a rise on the mE curve: the paper's step (it does not pass
+                    st = int(from_q(c, qf))  # the law's stable fixed point there), unless it enters the ceiling
+                    if (st & _ST_T_MAX) == 0:
+                        return st
+                    kb[_K_I] = i_k
+                    kb[_K_T] = t_k
+                    kb[_K_ST] = s_k
                 return int(from_q(c, qf if qf < base else base))
         q_new = int(newton(c, qf, q_k, rp_ohm))
         if q_new != qf:

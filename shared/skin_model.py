@@ -60,6 +60,9 @@ SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
+# a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
+# taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
+FAST_MODEL_STEP_LOG2 = const(3)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -947,8 +950,9 @@ class SkinModel:
         to the pulse just measured (i_k, t_k; Rp = rp_ohm, or the drift's prediction;
         prev: the controller's int array c._k, whose words _KB_* hold the pulse before it,
         c.before, Rp 0 if none). After a model jump
-        that missed its prediction and moved I, Cp is refitted first. On a fresh rise,
-        the contact hypothesis is also solved and the smaller charge taken. Returns the
+        that missed its prediction and moved I, Cp is refitted first. On a fresh rise (no
+        model jump before, or a reading that missed it by more than Rp/2**FAST_MODEL_STEP_LOG2
+        with no refit taken), the contact hypothesis is also solved and the smaller charge taken. Returns the
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
         step: never the larger hydration answer nor a search's unfinished value).
@@ -1049,11 +1053,19 @@ class SkinModel:
         v[_V_NI] = i_k
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
+        fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
         if jumped and p0rp > 0:
             miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            if (miss if miss >= 0 else 0 - miss) > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
+            am = miss if miss >= 0 else 0 - miss
+            big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
+            if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
+                lc_was = v[_V_LC]
                 self.refit_cp()
+                if big and v[_V_LC] == lc_was:
+                    fresh = 1
+            elif big:
+                fresh = 1
         lc = v[_V_LC] - _V_BIAS  # (self.lc)
         w0 = v[_V_WORK]
         ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
@@ -1085,7 +1097,7 @@ class SkinModel:
             q16 = int(_law_q(vv, lq_k))
         if q16 == NOROOT:
             return -2 if v[_V_CUT] else -1
-        if q16 > (q_k << 4) and jumped == 0 and p0rp > 0:
+        if q16 > (q_k << 4) and fresh and p0rp > 0:
             # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
             # charge is the smaller one; take it, the next pulse tells them apart
             if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
@@ -1138,7 +1150,7 @@ class SkinModel:
         v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
         v[_V_PROBE + _P_LT] = pk[_KC_T]
         rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
-        if (q16 > base and jumped == 0 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
+        if (q16 > base and fresh and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
             # was no model jump) that enters the duration ceiling, where the model moves I at

@@ -52,7 +52,11 @@ def test_gel_coming_off_is_not_left_to_the_model_free_creep():
     """Rule 4's fall-back: issue 13's study, electrode 5 (seed 7), gel off on the realistic
     board with the averaged, trusted model. A two-pulse refit had moved Cp up 0.4 octave on
     reads 1-2 % off; the law had no root on that model, and every later pulse took the
-    model-free step: 9 pulses to 1 % of the felt target. With the fitted Cp back: 3."""
+    model-free step: 9 pulses to 1 % of the felt target. With the fitted Cp back: 3; since
+    session 17's fresh-rise test (rules 3 and 6 after a reading that missed a checked model by
+    more than Rp/8) the first corrected pulse takes the contact hypothesis's smaller charge
+    (-10 % instead of -6 % of the target), and the model reaches 1 % on pulse 4: the price of
+    no longer overshooting after a peel (docs/controller.md, rule 3)."""
     rng = np.random.default_rng(7)
     for _ in range(6):
         mk = bench.random_electrode(rng)
@@ -62,7 +66,7 @@ def test_gel_coming_off_is_not_left_to_the_model_free_creep():
     assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
     reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
     assert bench.STEP_NAMES[1].startswith("gel off")
-    assert reach[1] is not None and reach[1] <= 3, reach
+    assert reach[1] is not None and reach[1] <= 4, reach
     assert surge[1] <= 0.05, surge
 
 
@@ -87,3 +91,27 @@ def test_a_law_that_crosses_twice_takes_the_nearest_fixed_point_in_the_steps_dir
     assert 200 <= rows[a + 2, 2] <= 300, rows[a:a + 3]  # ... and lands near the stable fixed point, not at 1000 us
     assert reach[1] is not None and reach[1] <= 2, reach
     assert max(surge) <= 0.05, surge
+
+
+def test_a_peel_after_a_checked_model_is_a_fresh_rise():
+    """Rules 3 and 6 after a step that a checked model did not predict: issue 13's study, seed 11,
+    electrode 25, half peeled, realistic board, averaged and trusted model. The pulse before the
+    peel was a model jump (in steady state the model jumps by small amounts), so the rise after
+    the peel was not 'fresh': the hydration hypothesis alone, no halving into the ceiling, and
+    the first corrected pulse was felt 108 % above target. A reading that misses the model's
+    prediction by more than Rp/8 now makes the next jump a fresh one: the contact hypothesis's
+    smaller charge. Over 11 seeds x 30 electrodes the rises' first corrected pulses above target
+    by > 5 % went 81 -> 0 (docs/performance.md)."""
+    rng = np.random.default_rng(11)
+    for _ in range(26):
+        mk = bench.random_electrode(rng)
+    corr = bench.selftest_correction("real")
+    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="real", sweeps=10,
+                                electrode=mk, correction=corr, seed=1025)
+    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    assert bench.STEP_NAMES[2] == "half peeled"
+    first = bench.first_rise(rows, target, bench.STUDY_EVENTS, bench.STUDY_N)
+    assert first[2] is not None and first[2] <= 0.05, first
+    reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
+    assert max(surge) <= 0.05, surge
+    assert all(r is not None and r <= 4 for r in reach), reach
