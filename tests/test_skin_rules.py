@@ -27,6 +27,19 @@ if bench is None:
 CASES = [line.split() for line in (Path(__file__).parent / "golden" / "rule5_cases.txt").read_text().splitlines() if line]
 
 
+def study_run(seed, k, board="real"):
+    """bench.study's closed loop for its electrode k of this seed, MODE_FAST with the averaged
+    model (10 sweeps; the self-test correction on the realistic board): (rows, felt target)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(k + 1):
+        mk = bench.random_electrode(rng)
+    corr = bench.selftest_correction(board)
+    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board=board, sweeps=10,
+                                electrode=mk, correction=corr, seed=1000 + k)
+    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    return rows, target
+
+
 @pytest.mark.parametrize("case", CASES, ids=[f"update {c[0]}" for c in CASES])
 def test_a_model_rise_is_at_most_16_paper_steps_even_when_the_step_is_large(case):
     v = [int(w) for w in case[1:]]
@@ -57,13 +70,7 @@ def test_gel_coming_off_is_not_left_to_the_model_free_creep():
     more than Rp/8) the first corrected pulse takes the contact hypothesis's smaller charge
     (-10 % instead of -6 % of the target), and the model reaches 1 % on pulse 4: the price of
     no longer overshooting after a peel (docs/controller.md, rule 3)."""
-    rng = np.random.default_rng(7)
-    for _ in range(6):
-        mk = bench.random_electrode(rng)
-    corr = bench.selftest_correction("real")
-    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="real", sweeps=10,
-                                electrode=mk, correction=corr, seed=1005)
-    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    rows, target = study_run(7, 5)
     reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
     assert bench.STEP_NAMES[1].startswith("gel off")
     assert reach[1] is not None and reach[1] <= 4, reach
@@ -78,12 +85,7 @@ def test_a_law_that_crosses_twice_takes_the_nearest_fixed_point_in_the_steps_dir
     the pulse at T = 104 us both ends of the search (Q_k/4, 4 Q_k) ask for more charge and the
     search found no root: every later pulse took the model-free step and crept (7 pulses to
     1 %). The nearest fixed point in the paper's direction: 2."""
-    rng = np.random.default_rng(7)
-    for _ in range(4):
-        mk = bench.random_electrode(rng)
-    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="exact", sweeps=10,
-                                electrode=mk, seed=1003)
-    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    rows, target = study_run(7, 3, "exact")
     reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
     assert bench.STEP_NAMES[1].startswith("gel off")
     a = bench.STUDY_EVENTS[1].pulse
@@ -102,13 +104,7 @@ def test_a_peel_after_a_checked_model_is_a_fresh_rise():
     prediction by more than Rp/8 now makes the next jump a fresh one: the contact hypothesis's
     smaller charge. Over 11 seeds x 30 electrodes the rises' first corrected pulses above target
     by > 5 % went 81 -> 0 (docs/performance.md)."""
-    rng = np.random.default_rng(11)
-    for _ in range(26):
-        mk = bench.random_electrode(rng)
-    corr = bench.selftest_correction("real")
-    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="real", sweeps=10,
-                                electrode=mk, correction=corr, seed=1025)
-    assert bench.FIT_INFO.get("trusted"), bench.FIT_INFO
+    rows, target = study_run(11, 25)
     assert bench.STEP_NAMES[2] == "half peeled"
     first = bench.first_rise(rows, target, bench.STUDY_EVENTS, bench.STUDY_N)
     assert first[2] is not None and first[2] <= 0.05, first
