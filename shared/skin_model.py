@@ -746,6 +746,8 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
     passes it on the model. Rises only (lowering steps: the model-free rules, as before).
     Each evaluation is a unit of the jump's work."""
     v = ptr32(vv)
+    if lq_k >= hi:  # (the pulse at or past the search's upper end: no rise to search)
+        return NOROOT
     x0 = lq_k
     x = lq_k
     while True:

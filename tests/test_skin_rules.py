@@ -111,3 +111,31 @@ def test_a_peel_after_a_checked_model_is_a_fresh_rise():
     reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
     assert max(surge) <= 0.05, surge
     assert all(r is not None and r <= 4 for r in reach), reach
+
+
+def test_the_nearest_fixed_point_search_stays_within_its_range(monkeypatch):
+    """Review of session 17: with the measured pulse at the ceiling carrying more charge than the
+    mE curve gives at t_max, _law_near's first evaluation (at Q_k) lay past its upper end: a unit
+    of work spent for nothing, which could turn a later 'no answer' into a cut. Now nothing is
+    evaluated there."""
+    import skin_model as sm
+
+    seen = []
+    real = sm._law_near
+
+    def spy(vv, lq_k, hi):
+        w = vv[sm._V_WORK]
+        r = real(vv, lq_k, hi)
+        seen.append((lq_k, hi, vv[sm._V_WORK] - w, r))
+        return r
+
+    monkeypatch.setattr(sm, "_law_near", spy)
+    c = sc.Controller(1, 20000, 1, 8000, 33554432)
+    c.calibrate(1818, 891, 23989, -7039, 597370)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(2357, 78469, 48567)
+    for rp in (24216, 135965, 36390):
+        c.update(rp)
+    past = [s for s in seen if s[0] >= s[1]]
+    assert past, seen  # the case arises ...
+    assert all(s[2] == 0 and s[3] == sm.NOROOT for s in past), past  # ... and costs nothing
