@@ -391,12 +391,11 @@ def judge_correction(data: bytes | None, n_channels: int) -> StoredCorrection:
         return StoredCorrection("none", f"stored correction: none on the board ({VMON_PATH}): the new firmware boots "
                                 f"with every monitor uncorrected and its hard limits held {held} until "
                                 "`steadytouch selftest --load-ohm OHMS --scope` stores one")
-    try:
-        text = data.decode("utf-8")
-        values = vc.parse(text, n_channels)
-        others = [e[0] for e in vc.entries(text) if e[0] >= n_channels]
-    except (ValueError, UnicodeError) as e:  # (what the firmware's boot_load calls VMON_BAD)
-        why = "not UTF-8 text" if isinstance(e, UnicodeError) else str(e)
+    try:  # the bytes as the board's boot reads them (vmon_cal.entries: strict, alike on both interpreters)
+        values = vc.parse(data, n_channels)
+        others = [e[0] for e in vc.entries(data) if e[0] >= n_channels]
+    except ValueError as e:  # (what the firmware's boot_load calls VMON_BAD)
+        why = str(e)
         return StoredCorrection("ignored", f"stored correction {VMON_PATH}: the new firmware would ignore it at boot "
                                 f"({why}; {_window()}): the board would boot with its hard limits held {held} and "
                                 "every monitor uncorrected", why)

@@ -99,7 +99,7 @@ def test_the_verdict_names_what_the_new_firmware_does_with_each_file():
     assert bad.why.startswith("correction file line 2: gain 1095000 ppm") and "out of range" in bad.why
     assert "the accepted window: monitor gain 0.91-1.09, offset -1200..+1200 mV, DAC gain 0.965-1.035" in bad.line
     assert bad.line.endswith("the board would boot with its hard limits held x 0.965 and every monitor uncorrected")
-    assert v["corrupt"].why == "not UTF-8 text" and "first line must be" in v["garbage"].why
+    assert v["corrupt"].why == "correction file: not ASCII text" and "first line must be" in v["garbage"].why
     assert "none on the board (/vmon_cal.txt)" in v["none"].line and "held x 0.965" in v["none"].line
     for c in v.values():
         assert "\n" not in c.line
@@ -127,6 +127,81 @@ def test_the_verdict_is_the_firmwares_own_boot_rule():
             p.write_bytes(data)
             _, state = vmon_cal.boot_load(str(p), 2)
             assert (state == hp.VMON_BAD) == (F.judge_correction(data, 2).state == "ignored"), name
+
+
+L0, L1 = "0 1000000 0 1000000", "1 1000000 0 1000000"
+H = HEADER.rstrip("\n")
+# files CPython's and MicroPython's own str/int rules read differently (review rev-lims F1): unicode line
+# breaks and spaces, non-ASCII digits, UTF-8 MicroPython does not check, numbers past CPython's 4300 digits
+HOSTILE = {
+    "crlf": (H + "\r\n" + L0 + "\r\n" + L1 + "\r\n").encode(),
+    "cr": (H + "\r" + L0 + "\r" + L1 + "\r").encode(),
+    "formfeed": (H + "\x0c" + L0 + "\n").encode(),
+    "vt": (H + "\n" + L0 + "\x0b" + L1 + "\n").encode(),
+    "nel": (H + "\n" + L0 + "\x85" + L1 + "\n").encode(),
+    "u2028": (H + "\n" + L0 + "\u2028" + L1 + "\n").encode(),
+    "nbsp": (H + "\n0\xa01000000 0 1000000\n").encode(),
+    "arabic": (H + "\n\u0660 1000000 0 1000000\n").encode(),
+    "fullwidth": (H + "\n\uff10 1000000 0 1000000\n").encode(),
+    "u3000": (H + "\n0\u30001000000 0 1000000\n").encode(),
+    "huge ch": (H + "\n" + "9" * 5000 + " 1000000 0 1000000\n" + L0 + "\n").encode(),
+    "overlong": H.encode() + b"\n# \xc0\xaf\n" + L0.encode() + b"\n",
+    "surrogate": H.encode() + b"\n# \xed\xa0\x80\n" + L0.encode() + b"\n",
+    "latin1": H.encode() + b"\n# caf\xe9\n" + L0.encode() + b"\n",
+    "x1c": (H + "\n0\x1c1000000 0 1000000\n").encode(),
+    "underscore": (H + "\n0 1_000_000 0 1_000_000\n").encode(),
+    "plus": (H + "\n+0 +1000000 +0 +1000000\n").encode(),
+    "leading zeros": (H + "\n00 01000000 00 01000000\n").encode(),
+    "ch 4": (H + "\n4 1000000 0 1000000\n").encode(),
+    "ch 99": (H + "\n99 1000000 0 1000000\n").encode(),
+    "bom": ("\ufeff" + H + "\n" + L0 + "\n").encode(),
+    "header tab": (H + "\t\n" + L0 + "\n").encode(),
+    "tabs": (H + "\n0\t1000000\t0\t1000000\n").encode(),
+    "nul in comment": (H + "\n# \x00\n" + L0 + "\n").encode(),
+    "0x": (H + "\n0 0xF4240 0 0\n").encode(),
+    "no newline": (H + "\n" + L0).encode(),
+    "empty": b"",
+}
+
+
+def test_the_hosts_verdict_is_the_boot_of_the_firmware_in_the_micropython_vm(tmp_path):
+    """judge_correction (CPython) and vmon_cal.boot_load run by MicroPython itself agree on every file,
+    hostile ones included: loaded exactly when the board's boot loads it, with the same values."""
+    from fw_harness import run_fw
+
+    files = dict(HOSTILE, **{k: v for k, v in FILES.items() if v is not None})
+    names = sorted(files)
+    for k, name in enumerate(names):
+        (tmp_path / f"{k}.txt").write_bytes(files[name])
+    _, res, _ = run_fw(f"""
+import vmon_cal
+out = []
+for k in range({len(names)}):
+    v, st = vmon_cal.boot_load({str(tmp_path)!r} + "/%d.txt" % k, 2)
+    out.append([st, v])
+result(out=out)
+""")
+    board = dict(zip(names, res[0]["out"]))
+    want = {hp.VMON_LOADED: "loaded", hp.VMON_BAD: "ignored", hp.VMON_NONE: "none"}
+    sys_path = __import__("sys").path
+    from conftest import FIRMWARE
+
+    sys_path.insert(0, str(FIRMWARE))
+    try:
+        import vmon_cal
+    finally:
+        sys_path.remove(str(FIRMWARE))
+    wrong = {n: (F.judge_correction(files[n], 2).state, want[board[n][0]]) for n in names
+             if F.judge_correction(files[n], 2).state != want[board[n][0]]}
+    assert not wrong, wrong
+    for n in names:  # the same values as the board loads
+        if board[n][0] == hp.VMON_LOADED:
+            assert [tuple(v) if v else None for v in board[n][1]] == vmon_cal.parse(files[n], 2), n
+    # the strict rules: ASCII only, lines end in \n, \r\n or \r, fields apart by spaces or tabs,
+    # ASCII digits with an optional sign, channels 0..3
+    loaded = sorted(n for n in names if board[n][0] == hp.VMON_LOADED)
+    assert loaded == ["cr", "crlf", "good", "header tab", "leading zeros", "no newline", "nul in comment", "plus",
+                      "tabs"], loaded
 
 
 @pytest.mark.parametrize("name", ["good", "none"])
