@@ -25,6 +25,11 @@ ADC_MAX = 4095
 
 CAL_CHANNELS = (hp.O_CRC - hp.O_ARG - 4) // hp.VMON_STRIDE  # 4: the most SET_VMON CH_ALL carries, so a line's
 # channel is 0..3; a board builds 1..4 (board_config.N_CHANNELS)
+CAL_MAX_BYTES = 4096  # a longer file is one the firmware ignores, read no further: a full 4-channel file is
+# ~300 bytes (header, comment, 4 lines), so 4 KB leaves room for notes while reading and checking it stays a few
+# KB of heap and a few ms on the chip, inside a store answered from the loop (a 64 KB file read whole ran the
+# chip out of memory; 130 lines, the watchdog out of time: review rev-lims F2). boot_load, kept and
+# steadytouch flash's read all stop at it.
 _DIGITS = 9  # a number of at most 9 digits: < 2**30, a small int on the chip
 
 
@@ -62,6 +67,8 @@ def entries(text):
     tabs; numbers are ASCII digits with an optional sign. ValueError names the line."""
     if isinstance(text, str):
         text = text.encode()
+    if len(text) > CAL_MAX_BYTES:
+        raise ValueError("correction file: longer than %d bytes" % CAL_MAX_BYTES)
     if text and max(text) > 127:
         raise ValueError("correction file: not ASCII text")
     lines = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n").split(b"\n")
@@ -116,11 +123,17 @@ def ok(gain_ppm, offset_mv, dac_gain_ppm):
     return dac_gain_ppm == 0 or CAL_DAC_PPM[0] <= dac_gain_ppm <= CAL_DAC_PPM[1]
 
 
+def read(path):
+    """The file's first CAL_MAX_BYTES + 1 bytes (entries() refuses a longer file; never more is read);
+    OSError when there is none or it cannot be read."""
+    with open(path, "rb") as f:
+        return f.read(CAL_MAX_BYTES + 1)
+
+
 def load(path, n_channels):
     """parse() of the file at path; None when there is none (the monitor is used uncorrected)."""
     try:
-        with open(path, "rb") as f:
-            text = f.read()
+        text = read(path)
     except OSError:
         return None
     return parse(text, n_channels)
@@ -136,7 +149,7 @@ def boot_load(path, n_channels):
         return [None] * n_channels, hp.VMON_NONE
     try:
         with f:
-            return parse(f.read(), n_channels), hp.VMON_LOADED
+            return parse(f.read(CAL_MAX_BYTES + 1), n_channels), hp.VMON_LOADED
     except Exception:  # ValueError (not ASCII, out of range ...), OSError, MemoryError: never a crash at boot
         return [None] * n_channels, hp.VMON_BAD
 
@@ -158,13 +171,11 @@ def text(values, others=()):
 def kept(path, n_channels):
     """The lines of the file at path for channels >= n_channels (stored by a build with more
     channels), as entries(): a store keeps them. None of them when there is no file or it is
-    one the firmware ignores (unreadable, out of range: it is replaced whole). A MemoryError
-    is raised (the store then fails and writes nothing)."""
+    one the firmware ignores at boot (unreadable, out of range, longer than CAL_MAX_BYTES, or
+    one that runs out of memory: it is replaced whole and the store goes on)."""
     try:
-        with open(path, "rb") as f:
-            t = f.read()
-        return [e for e in entries(t) if e[0] >= n_channels]
-    except (OSError, ValueError):  # no file, or one the firmware ignores at boot
+        return [e for e in entries(read(path)) if e[0] >= n_channels]
+    except (OSError, ValueError, MemoryError):  # no file, or one boot_load calls VMON_BAD
         return []
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import hid_protocol as hp
 
 from . import boardlib
-from .simrun import FIRMWARE, SHARED
+from .simrun import FIRMWARE, SHARED, firmware_module
 from .transport import DEFAULT_URL
 
 # files the board does not need (the simulator and the demo)
@@ -200,7 +200,7 @@ for _st_p in %r:
 _READ_VMON = f"""def _st_vmon():
     try:
         with open({VMON_PATH!r}, 'rb') as f:
-            return f.read()
+            return f.read({firmware_module("vmon_cal").CAL_MAX_BYTES + 1})
     except OSError:
         return None
 print(repr(_st_vmon()))

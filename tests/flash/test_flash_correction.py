@@ -254,3 +254,17 @@ def test_dry_run_without_a_board_says_the_correction_was_not_checked(board, caps
     monkeypatch.setattr(F, "connect", no_board)
     assert cli.main(["flash", "--port", "PORT", "--dry-run"]) == 0
     assert "stored correction: not checked (no board reached: no board at PORT" in capsys.readouterr().out
+
+
+def test_flash_reads_no_more_of_the_file_than_the_firmware_and_judges_a_longer_one_ignored():
+    """Review rev-lims F2: one cap (vmon_cal.CAL_MAX_BYTES) for boot, the store's kept lines and flash's read."""
+    import ast
+
+    cap = F.firmware_module("vmon_cal").CAL_MAX_BYTES
+    reads = [n for n in ast.walk(ast.parse(F._READ_VMON)) if isinstance(n, ast.Call)
+             and getattr(n.func, "attr", None) == "read"]
+    assert [ast.literal_eval(n.args[0]) for n in reads] == [cap + 1]
+    good = FILES["good"] + b"#" * (cap - len(FILES["good"]) - 1) + b"\n"
+    assert F.judge_correction(good, 2).state == "loaded"
+    c = F.judge_correction(good + b"\n", 2)
+    assert c.state == "ignored" and c.why == f"correction file: longer than {cap} bytes", c
