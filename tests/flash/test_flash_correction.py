@@ -268,3 +268,71 @@ def test_flash_reads_no_more_of_the_file_than_the_firmware_and_judges_a_longer_o
     assert F.judge_correction(good, 2).state == "loaded"
     c = F.judge_correction(good + b"\n", 2)
     assert c.state == "ignored" and c.why == f"correction file: longer than {cap} bytes", c
+
+
+class UnreadableLink(FakeLink):
+    """The board cannot give the file: its read raises (MemoryError on the board) or answers another OSError."""
+
+    def eval(self, code):
+        assert code == F._READ_VMON, code
+        self.log.append("read")
+        if self.data == "raise":
+            raise F.FlashError("the board at PORT failed: MemoryError: memory allocation failed, allocating 70144 "
+                               "bytes")
+        return self.data  # 'OSError 5'
+
+
+@pytest.mark.parametrize("how", ["raise", "OSError 5"])
+@pytest.mark.parametrize("extra, rc", [([], 2), (["--ignore-stored-correction"], 0), (["--dry-run"], 2),
+                                       (["--dry-run", "--ignore-stored-correction"], 0)])
+def test_a_file_flash_cannot_read_stops_it_resets_the_board_and_the_flag_overrides(board, capsys, monkeypatch, how,
+                                                                                   extra, rc):
+    """Review rev-lims F3: a read that failed left the board stopped in its raw REPL (no reset), the flag did not
+    help, and any OSError read as "none stored". Now: "unreadable", one line, the board reset on every exit."""
+    state = F.BoardState(platform="rp2", version=(1, 28, 0), machine="Raspberry Pi Pico with RP2040", mpy=6, log=None)
+    monkeypatch.setattr(F, "connect", lambda port, timeout_s, tries=3: (UnreadableLink(board.data, board.log), state))
+    assert flash(board, how, *extra) == rc
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err and "none on the board" not in cap.out
+    assert "stored correction /vmon_cal.txt: cannot be read over the REPL (" in cap.out
+    if rc:
+        err = cap.err.strip().splitlines()
+        assert len(err) == 1 and "/vmon_cal.txt could not be read (" in err[0] and IGNORE in err[0], cap.err
+    if "--dry-run" in extra:
+        assert board.log == ["read", "reset"]
+    else:
+        assert board.log == (["read", "reset"] if rc else ["read", "deploy", "boot check"])
+
+
+IGNORE = "--ignore-stored-correction"
+
+
+@pytest.mark.parametrize("fail_at", ["check", "deploy"])
+def test_flash_resets_the_board_it_stopped_on_every_exit_before_the_boot_check(board, capsys, monkeypatch, fail_at):
+    if fail_at == "check":
+        monkeypatch.setattr(F, "connect", lambda port, timeout_s, tries=3: (FakeLink(None, board.log), F.BoardState(
+            platform="rp2", version=(1, 19, 1), machine="Raspberry Pi Pico with RP2040", mpy=6, log=None)))
+    else:
+        def deploy(link, b, say):
+            board.log.append("deploy")
+            raise F.FlashError("the board's copy of /main.py does not match the build (full flash?): run flash again")
+        monkeypatch.setattr(F, "_deploy", deploy)
+    assert flash(board, None) == 2
+    assert board.log == (["reset"] if fail_at == "check" else ["read", "deploy", "reset"])
+
+
+def test_the_boards_read_tells_no_file_from_one_it_cannot_read(micropython, tmp_path):
+    """_READ_VMON itself, run by MicroPython: no file -> None; a path it cannot read (a folder) -> 'OSError N'."""
+    import subprocess
+
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "f.txt").write_bytes(FILES["good"])
+    out = []
+    for name in ("none.txt", "adir", "f.txt"):
+        code = F._READ_VMON.replace(repr(F.VMON_PATH), repr(str(tmp_path / name)))
+        assert code != F._READ_VMON
+        p = subprocess.run([micropython, "-c", code], capture_output=True, text=True, timeout=30)
+        assert p.returncode == 0, p.stderr
+        out.append(__import__("ast").literal_eval(p.stdout.strip()))
+    assert out[0] is None and out[2] == FILES["good"]
+    assert isinstance(out[1], str) and out[1].startswith("OSError ") and out[1] != "OSError 2", out
