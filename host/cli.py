@@ -1056,7 +1056,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--boot-timeout-s", type=float, default=30.0,
                    help="how long to wait for the board to come back and run after its reset (default 30)")
     s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, copy nothing; "
-                   "with a board reachable, read its stored correction and say what the new firmware would do with it")
+                   "to say what the new firmware would do with the board's stored correction, "
+                   "a board it reaches is stopped (Ctrl-C: a running session ends), its stored correction read over "
+                   "its REPL, and the board reset to run its program again")  # = flash.DRY_RUN_TOUCH (not imported)
     s.add_argument("--ignore-stored-correction", action="store_true",
                    help="flash even if the new firmware would ignore the board's stored correction (/vmon_cal.txt): "
                    "it then boots with its hard limits held and its monitor uncorrected until `steadytouch selftest`")

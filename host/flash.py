@@ -50,6 +50,9 @@ UDEV_RULE_DOC = "docs/70-steadytouch.rules (docs/hardware.md)"
 WDT_CTRL = 0x40058000  # RP2040 watchdog CTRL; bit 30 ENABLE (firmware/board_rp2.py watchdog_pause)
 MIN_MICROPYTHON = (1, 23)  # machine.USBDevice
 STEPS = 8
+# what --dry-run does to a board it reaches (its help, its output and docs/hardware.md say it)
+DRY_RUN_TOUCH = ("a board it reaches is stopped (Ctrl-C: a running session ends), its stored correction read over "
+                 "its REPL, and the board reset to run its program again")
 VMON_PATH = "/vmon_cal.txt"  # firmware/board_rp2.py VMON_PATH: the self-test's correction, read at every boot
 IGNORE_FLAG = "--ignore-stored-correction"
 WRITE_CHUNK = 2048  # bytes of a file per raw-REPL exec
@@ -485,7 +488,8 @@ def flash(o: Options, say=print) -> BoardState | None:
         _step(say, 2, f"libraries: {boardlib.NAME} {source}, sha256 checked, compiled into {o.build_dir / 'lib'}")
     if o.dry_run:
         port = o.port or "the Pico found by USB VID 0x2E8A"
-        say(f"dry run: nothing was sent. On {port} flash would:")
+        say("dry run: nothing is copied, removed or written; " + DRY_RUN_TOUCH)
+        say(f"On {port} flash would:")
         say("  stop the running program (Ctrl-C), pause the watchdog, show and clear " + ERROR_LOG)
         say(f"  read the board's stored correction {VMON_PATH} and judge it by the new firmware's rules "
             f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it (unless "

@@ -241,6 +241,11 @@ def test_dry_run_shows_the_same_verdict_and_copies_nothing(board, capsys, name, 
     verdict = F.judge_correction(FILES[name], F.build_channels())
     assert f"on PORT now (read over its REPL; its program was stopped for it and restarted): {verdict.line}" in cap.out
     assert board.log == ["read", "reset"]
+    # review rev-lims F5: it said "nothing was sent" while it stopped, read and reset the board: now it says so
+    assert "nothing was sent" not in cap.out
+    assert "dry run: nothing is copied, removed or written; a board it reaches is stopped (Ctrl-C: a running " \
+           "session ends), its stored correction read over its REPL, and the board reset to run its program again" \
+        in cap.out
     if rc:
         assert len(cap.err.strip().splitlines()) == 1 and "flash would stop here, before copying anything" in cap.err
         assert "--ignore-stored-correction" in cap.err
@@ -336,3 +341,9 @@ def test_the_boards_read_tells_no_file_from_one_it_cannot_read(micropython, tmp_
         out.append(__import__("ast").literal_eval(p.stdout.strip()))
     assert out[0] is None and out[2] == FILES["good"]
     assert isinstance(out[1], str) and out[1].startswith("OSError ") and out[1] != "OSError 2", out
+
+
+def test_dry_runs_help_says_what_it_does_to_a_board(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["flash", "--help"])
+    assert F.DRY_RUN_TOUCH in " ".join(capsys.readouterr().out.split())
