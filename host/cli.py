@@ -20,7 +20,8 @@ import sensation_core as sc
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
 from .files import FileProblem, Outputs, dump_json
-from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration, held_reason
+from .protocol import (FW_OWN_LIMITS, STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration,
+                       held_reason)
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
@@ -198,7 +199,7 @@ def cmd_info(a) -> int:
                 f"it reports is the delivered one{mine}")
         if (i.held or i.dac_low) and own is None:
             say(f"  firmware {i.firmware} does not report the board's own limits beside the lowered ones (GET_INFO "
-                "page 1): `steadytouch flash` updates it")
+                f"page 1, firmware {'.'.join(map(str, FW_OWN_LIMITS))} on): `steadytouch flash` updates it")
         soft = f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC"
         if own is not None and (own.i_min_ua, own.i_max_ua, own.q_max_pc) != (i.i_min_ua, i.i_max_ua, i.q_max_pc):
             soft += (f" (set: I {own.i_min_ua}-{own.i_max_ua} uA, Q <= {own.q_max_pc} pC; lowered to the hard "
