@@ -492,8 +492,8 @@ def flash(o: Options, say=print) -> BoardState | None:
         say(f"On {port} flash would:")
         say("  stop the running program (Ctrl-C), pause the watchdog, show and clear " + ERROR_LOG)
         say(f"  read the board's stored correction {VMON_PATH} and judge it by the new firmware's rules "
-            f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it (unless "
-            f"{IGNORE_FLAG})")
+            f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it or the file "
+            f"cannot be read (unless {IGNORE_FLAG})")
         say(f"  copy what differs (sha256) of {len(b.files)} files:")
         for dst, src in sorted(b.files.items()):
             say(f"    {src} -> :{dst}")
