@@ -71,13 +71,21 @@ def entries(text):
         raise ValueError("correction file: longer than %d bytes" % CAL_MAX_BYTES)
     if text and max(text) > 127:
         raise ValueError("correction file: not ASCII text")
-    lines = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n").split(b"\n")
-    if lines[0].strip(b" \t") != CAL_HEADER.encode():
+    text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    # one line at a time (a list of every line of 4 KB of blank lines ran the chip out of memory at boot)
+    e = text.find(b"\n")
+    e = len(text) if e < 0 else e
+    if text[:e].strip(b" \t") != CAL_HEADER.encode():
         raise ValueError("correction file: the first line must be %r" % CAL_HEADER)
     out = []
     seen = []
-    for k in range(1, len(lines)):
-        parts = _fields(lines[k])
+    k = 0
+    while e < len(text):
+        b = e + 1
+        e = text.find(b"\n", b)
+        e = len(text) if e < 0 else e
+        k += 1
+        parts = _fields(text[b:e])
         if not parts or parts[0][0] == 35:  # "#"
             continue
         try:
