@@ -5,7 +5,7 @@ Run: .venv/bin/python bench/flash_emulated.py [--runs 1]
 Boots ../shared/emulator's real MicroPython v1.28.0 for the RP2040 in rp2040js,
 served by host/emu (tests/flash/emu.py: its USB serial and its HID interface on
 two TCP ports), then per run: flash a blank board, wait until the firmware runs
-its loop, flash again onto the running board (nothing to copy). Step 7 reads
+its loop, flash again onto the running board (nothing to copy). Step 8 reads
 the version back over HID (emu+tcp://); --no-hid-check times the serial-REPL
 fallback instead. Prints each step's wall time (from the moment its progress line
 arrives) and the total. The emulator runs at 0.1-0.4x a real RP2040 and its
@@ -28,8 +28,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "flash"))
 import emu  # noqa: E402
 
-NAMES = {1: "compile", 2: "libraries (host)", 3: "connect", 4: "error log", 5: "libraries on the board",
-         6: "firmware files", 7: "boot check"}
+NAMES = {1: "compile", 2: "libraries (host)", 3: "connect", 4: "error log", 5: "stored correction",
+         6: "libraries on the board", 7: "firmware files", 8: "boot check"}  # flash.STEPS steps
 
 
 def flash(pico, build: Path, hid: bool) -> tuple[float, dict[str, float], str]:
@@ -42,7 +42,7 @@ def flash(pico, build: Path, hid: bool) -> tuple[float, dict[str, float], str]:
     steps, last, out = {}, 0.0, []
     for line in p.stdout:
         out.append(line)
-        m = re.match(r"\[(\d)/7\]", line)
+        m = re.match(r"\[(\d)/%d\]" % len(NAMES), line)
         if m:
             t = time.monotonic() - t0
             steps[NAMES[int(m.group(1))]] = t - last

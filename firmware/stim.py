@@ -43,7 +43,8 @@ except ImportError:  # CPython: no heap lock
         return x
 
 
-FW_VERSION = (0, 2, 0)
+# 0.2.0: GET_INFO's hard fields are the limits in force (held); 0.3.0: GET_INFO page 1 (the board's own)
+FW_VERSION = (0, 3, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ

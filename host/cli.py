@@ -20,7 +20,8 @@ import sensation_core as sc
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
 from .files import FileProblem, Outputs, dump_json
-from .protocol import STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration, held_reason
+from .protocol import (FW_OWN_LIMITS, STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration,
+                       held_reason)
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
 from .simrun import Calib, SimError, default_limits, run_firmware, scenario_keys
 from .transport import DEFAULT_URL, Disconnected, TransportError, open_transport
@@ -198,7 +199,7 @@ def cmd_info(a) -> int:
                 f"it reports is the delivered one{mine}")
         if (i.held or i.dac_low) and own is None:
             say(f"  firmware {i.firmware} does not report the board's own limits beside the lowered ones (GET_INFO "
-                "page 1): `steadytouch flash` updates it")
+                f"page 1, firmware {'.'.join(map(str, FW_OWN_LIMITS))} on): `steadytouch flash` updates it")
         soft = f"  soft limits: I {i.i_min_ua}-{i.i_max_ua} uA, T {i.t_min_us}-{i.t_max_us} us, Q <= {i.q_max_pc} pC"
         if own is not None and (own.i_min_ua, own.i_max_ua, own.q_max_pc) != (i.i_min_ua, i.i_max_ua, i.q_max_pc):
             soft += (f" (set: I {own.i_min_ua}-{own.i_max_ua} uA, Q <= {own.q_max_pc} pC; lowered to the hard "
@@ -1056,7 +1057,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--boot-timeout-s", type=float, default=30.0,
                    help="how long to wait for the board to come back and run after its reset (default 30)")
     s.add_argument("--dry-run", action="store_true", help="compile and list what would be done, copy nothing; "
-                   "with a board reachable, read its stored correction and say what the new firmware would do with it")
+                   "to say what the new firmware would do with the board's stored correction, "
+                   "a board it reaches is stopped (Ctrl-C: a running session ends), its stored correction read over "
+                   "its REPL, and the board reset to run its program again")  # = flash.DRY_RUN_TOUCH (not imported)
     s.add_argument("--ignore-stored-correction", action="store_true",
                    help="flash even if the new firmware would ignore the board's stored correction (/vmon_cal.txt): "
                    "it then boots with its hard limits held and its monitor uncorrected until `steadytouch selftest`")

@@ -199,10 +199,15 @@ class Device:
         return info
 
     def own_limits(self) -> Info | None:
-        """GET_INFO page 1 (hid_protocol INFO_PAGE_OWN): the board's nominal hard limits and its soft limits as
-        last set, before the firmware lowered them to the hard limits in force. None from firmware before it
-        (it answers page 0)."""
-        own = self.command(self.cmds.get_info(page=hp.INFO_PAGE_OWN))
+        """GET_INFO page 1 (hid_protocol INFO_PAGE_OWN; firmware 0.3.0 on): the board's nominal hard limits and
+        its soft limits as last set, before the firmware lowered them to the hard limits in force. None from
+        firmware before it: it answers page 0, or refuses the page (an error code: nothing changed)."""
+        try:
+            own = self.command(self.cmds.get_info(page=hp.INFO_PAGE_OWN))
+        except DeviceError as e:
+            if e.refused:
+                return None
+            raise
         return own if own.page == hp.INFO_PAGE_OWN else None
 
     def calibration(self, ch: int) -> CalInfo:

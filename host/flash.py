@@ -37,7 +37,7 @@ from pathlib import Path
 import hid_protocol as hp
 
 from . import boardlib
-from .simrun import FIRMWARE, SHARED
+from .simrun import FIRMWARE, SHARED, firmware_module
 from .transport import DEFAULT_URL
 
 # files the board does not need (the simulator and the demo)
@@ -50,6 +50,9 @@ UDEV_RULE_DOC = "docs/70-steadytouch.rules (docs/hardware.md)"
 WDT_CTRL = 0x40058000  # RP2040 watchdog CTRL; bit 30 ENABLE (firmware/board_rp2.py watchdog_pause)
 MIN_MICROPYTHON = (1, 23)  # machine.USBDevice
 STEPS = 8
+# what --dry-run does to a board it reaches (its help, its output and docs/hardware.md say it)
+DRY_RUN_TOUCH = ("a board it reaches is stopped (Ctrl-C: a running session ends), its stored correction read over "
+                 "its REPL, and the board reset to run its program again")
 VMON_PATH = "/vmon_cal.txt"  # firmware/board_rp2.py VMON_PATH: the self-test's correction, read at every boot
 IGNORE_FLAG = "--ignore-stored-correction"
 WRITE_CHUNK = 2048  # bytes of a file per raw-REPL exec
@@ -200,9 +203,9 @@ for _st_p in %r:
 _READ_VMON = f"""def _st_vmon():
     try:
         with open({VMON_PATH!r}, 'rb') as f:
-            return f.read()
-    except OSError:
-        return None
+            return f.read({firmware_module("vmon_cal").CAL_MAX_BYTES + 1})
+    except OSError as e:  # no file: None; any other error: what it was (the file may be there)
+        return None if e.args and e.args[0] == {errno.ENOENT} else 'OSError %s' % (e.args[0] if e.args else '')
 print(repr(_st_vmon()))
 """
 
@@ -360,7 +363,8 @@ def _check_board(st: BoardState, port: str) -> None:
 @dataclass
 class StoredCorrection:
     """What the new firmware will do at boot with the board's /vmon_cal.txt: state "none",
-    "loaded" or "ignored"; `line` says it in one line, `why` (ignored) names the line and the reason."""
+    "loaded", "ignored" or "unreadable" (flash could not read it); `line` says it in one line,
+    `why` (ignored, unreadable) names the line and the reason."""
     state: str
     line: str
     why: str = ""
@@ -391,12 +395,11 @@ def judge_correction(data: bytes | None, n_channels: int) -> StoredCorrection:
         return StoredCorrection("none", f"stored correction: none on the board ({VMON_PATH}): the new firmware boots "
                                 f"with every monitor uncorrected and its hard limits held {held} until "
                                 "`steadytouch selftest --load-ohm OHMS --scope` stores one")
-    try:
-        text = data.decode("utf-8")
-        values = vc.parse(text, n_channels)
-        others = [e[0] for e in vc.entries(text) if e[0] >= n_channels]
-    except (ValueError, UnicodeError) as e:  # (what the firmware's boot_load calls VMON_BAD)
-        why = "not UTF-8 text" if isinstance(e, UnicodeError) else str(e)
+    try:  # the bytes as the board's boot reads them (vmon_cal.entries: strict, alike on both interpreters)
+        values = vc.parse(data, n_channels)
+        others = [e[0] for e in vc.entries(data) if e[0] >= n_channels]
+    except ValueError as e:  # (what the firmware's boot_load calls VMON_BAD)
+        why = str(e)
         return StoredCorrection("ignored", f"stored correction {VMON_PATH}: the new firmware would ignore it at boot "
                                 f"({why}; {_window()}): the board would boot with its hard limits held {held} and "
                                 "every monitor uncorrected", why)
@@ -418,13 +421,25 @@ def judge_correction(data: bytes | None, n_channels: int) -> StoredCorrection:
 
 
 def read_correction(link: BoardLink, n_channels: int) -> StoredCorrection:
-    """The board's /vmon_cal.txt read over the REPL link, judged (judge_correction)."""
-    return judge_correction(link.eval(_READ_VMON), n_channels)
+    """The board's /vmon_cal.txt read over the REPL link, judged (judge_correction); a file the board
+    cannot give (an OSError other than no file, its MemoryError) is "unreadable", never "none"."""
+    try:
+        data = link.eval(_READ_VMON)
+    except FlashError as e:  # the board raised (e.g. MemoryError) or the link failed
+        data = str(e)
+    except (ValueError, SyntaxError, IndexError) as e:  # an answer that is no Python literal
+        data = f"no readable answer ({e.__class__.__name__})"
+    if isinstance(data, str):
+        return StoredCorrection("unreadable", f"stored correction {VMON_PATH}: cannot be read over the REPL ({data}): "
+                                "the new firmware boots with every monitor uncorrected and its hard limits held "
+                                f"x {hp.VMON_DAC_PPM_MIN / 1e6:g} if it cannot read it either", data)
+    return judge_correction(data, n_channels)
 
 
 def _refuse_ignored(c: StoredCorrection, version: str, dry_run: bool) -> FlashError:
     stop = "flash would stop here, before copying anything" if dry_run else "stopped before copying anything"
-    return FlashError(f"{stop}: the board's stored correction {VMON_PATH} would be ignored by firmware {version} "
+    what = "could not be read" if c.state == "unreadable" else f"would be ignored by firmware {version}"
+    return FlashError(f"{stop}: the board's stored correction {VMON_PATH} {what} "
                       f"({c.why}), so the board would boot with its hard limits held and its monitor uncorrected; "
                       f"flash anyway with {IGNORE_FLAG}, then run `steadytouch selftest --load-ohm OHMS --scope` "
                       "to store a correction it loads")
@@ -473,11 +488,12 @@ def flash(o: Options, say=print) -> BoardState | None:
         _step(say, 2, f"libraries: {boardlib.NAME} {source}, sha256 checked, compiled into {o.build_dir / 'lib'}")
     if o.dry_run:
         port = o.port or "the Pico found by USB VID 0x2E8A"
-        say(f"dry run: nothing was sent. On {port} flash would:")
+        say("dry run: nothing is copied, removed or written; " + DRY_RUN_TOUCH)
+        say(f"On {port} flash would:")
         say("  stop the running program (Ctrl-C), pause the watchdog, show and clear " + ERROR_LOG)
         say(f"  read the board's stored correction {VMON_PATH} and judge it by the new firmware's rules "
-            f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it (unless "
-            f"{IGNORE_FLAG})")
+            f"(firmware/vmon_cal.py, {build_channels()} channels): stop there if it would ignore it or the file "
+            f"cannot be read (unless {IGNORE_FLAG})")
         say(f"  copy what differs (sha256) of {len(b.files)} files:")
         for dst, src in sorted(b.files.items()):
             say(f"    {src} -> :{dst}")
@@ -490,6 +506,7 @@ def flash(o: Options, say=print) -> BoardState | None:
         return None
     port = o.port or find_port()
     link, st = connect(port, timeout_s=6)
+    deployed = False
     try:
         _check_board(st, port)
         was = f"stopped steadytouch {st.fw_text()} ({st.frames} frames)" if st.frames is not None else \
@@ -503,15 +520,18 @@ def flash(o: Options, say=print) -> BoardState | None:
             _step(say, 4, "no error log on the board")
         c = read_correction(link, build_channels())
         _step(say, 5, c.line)
-        if c.state == "ignored":
+        if c.state in ("ignored", "unreadable"):
             if not o.ignore_stored_correction:
-                link.reset()  # run again what it ran: nothing was changed
                 raise _refuse_ignored(c, fw_version(), False)
             say(f"      flashing anyway ({IGNORE_FLAG}): run `steadytouch selftest --load-ohm OHMS --scope` "
                 "afterwards to store a correction the new firmware loads")
         _deploy(link, b, say)
+        deployed = True
     finally:
-        link.close()
+        if deployed:
+            link.close()  # the boot check resets it
+        else:
+            link.reset()  # connect() stopped it: run again what it ran (or, deploy cut short, boot without main.py)
     want = fw_version()
     why = None if o.hid_check else "--no-hid-check"
     if why is None:
@@ -538,7 +558,7 @@ def _dry_run_correction(o: Options, say) -> None:
     finally:
         link.reset()  # run again what it ran
     say(f"on {port} now (read over its REPL; its program was stopped for it and restarted): {c.line}")
-    if c.state == "ignored" and not o.ignore_stored_correction:
+    if c.state in ("ignored", "unreadable") and not o.ignore_stored_correction:
         raise _refuse_ignored(c, fw_version(), True)
 
 

@@ -188,6 +188,7 @@ HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held b
 
 
 FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
+FW_OWN_LIMITS = (0, 3, 0)  # the first released with GET_INFO page 1, the board's own limits (Device.own_limits)
 DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 measured on a channel (the current it "
                   "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
 

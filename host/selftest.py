@@ -293,7 +293,7 @@ def put_back(d, old: dict, n_channels: int) -> None:
     apply_in_ram(d, {ch: (c.vmon_gain_ppm, c.vmon_offset_mv, c.dac_gain_ppm) for ch, c in old.items()}, n_channels)
 
 
-def restore_limits(d, before, say) -> None:
+def restore_limits(d, before, say, stored: bool = True) -> None:
     """The soft limits set again after the self-test (`before`: the device's GET_INFO before it ran): the
     self-test switches the correction off in RAM while it measures, which holds the hard limits, and the
     firmware lowers the soft ones in force to them and never raises them by itself. The soft limits wanted
@@ -301,8 +301,10 @@ def restore_limits(d, before, say) -> None:
     limits in force now: a limit the hold had lowered comes back once a stored DAC gain lifts the hold,
     and one a user set at the held value stays there (page 1 tells the two apart; page 0 cannot). Firmware
     before page 1: `before`'s limits, capped, never raised above them (the safe side), and one line says so
-    when the hold was lifted. SET_LIMITS only when something differs; one line when the soft limits could not
-    be given back in full."""
+    when the hold was lifted. A self-test that stored nothing (`stored` False: stopped, failed, or run without
+    --store) gives them back capped at `before` too: only a correction it stored may raise them (review rev-lims
+    F4: an aborted one raised a soft limit the hold had lowered, the board's DAC gains applied in RAM only).
+    SET_LIMITS only when something differs; one line when the soft limits could not be given back in full."""
     now = d.info()
     own = d.own_limits() if now.reports_held_limits else None
     hi, hq = now.hard_i_max_ua, now.hard_q_max_pc
@@ -311,6 +313,8 @@ def restore_limits(d, before, say) -> None:
         i_max, q_max, i_min = min(own.i_max_ua, hi), min(own.q_max_pc, hq), own.i_min_ua
     else:
         i_max, q_max, i_min = min(before.i_max_ua, hi), min(before.q_max_pc, hq), before.i_min_ua
+    if not stored:
+        i_max, q_max, i_min = min(i_max, before.i_max_ua), min(q_max, before.q_max_pc), min(i_min, before.i_min_ua)
     i_min = min(i_min, i_max, q_max // t_min)
     want = (i_min, i_max, t_min, t_max, q_max)
     if (now.i_min_ua, now.i_max_ua, now.t_min_us, now.t_max_us, now.q_max_pc) != want:
@@ -479,10 +483,10 @@ def run(url: str, load_ohm: int, channel, pulses: int, store: bool, save_dir, sa
                     d.disarm()
                     put_back(d, old, info.n_channels)
             if not failed:
-                restore_limits(d, info, say)
+                restore_limits(d, info, say, stored=done)
             elif not done:  # (a store whose outcome is unknown: the message says to reset the board)
                 with contextlib.suppress(Exception):
-                    restore_limits(d, info, say)
+                    restore_limits(d, info, say, stored=False)
     if save_dir is not None:
         say(f"a copy on this computer: {save(fits, Path(save_dir))}")
     if sim:  # a reset: the simulated board boots again and reads its flash

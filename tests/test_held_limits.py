@@ -338,7 +338,7 @@ def test_a_limits_refused_by_the_host_sends_nothing_and_changes_nothing():
 
 
 def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an_older_one():
-    """GET_INFO's hard fields and SET_LIMITS's rule changed: the minor version is 0.2.0; the host tells an older
+    """GET_INFO's hard fields and SET_LIMITS's rule changed in 0.2.0 (page 1 came in 0.3.0); the host tells an older
     board (nominal hard fields, no flag) from it and `info` says to update it."""
     import dataclasses
 
@@ -347,7 +347,7 @@ def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an
 
     with open_transport("sim://steady?channels=1") as t:
         i = Device(t).info()
-    assert i.firmware == "0.2.0" and i.reports_held_limits and i.held
+    assert i.firmware == "0.3.0" and i.reports_held_limits and i.held
     old = dataclasses.replace(i, firmware="0.1.0", flags=i.flags & ~hp.INFO_FLAG_HELD)
     assert not old.reports_held_limits and not dataclasses.replace(i, firmware="0.1.9").reports_held_limits
     assert dataclasses.replace(i, firmware="1.0.0").reports_held_limits
@@ -477,3 +477,45 @@ def test_the_host_names_the_boards_own_limit_beside_the_held_one_and_copes_with_
         good = bytes.fromhex(run_fw(SETUP + "s, bd, clock = board()\nresult(x=framed(s, hp.cmd_get_info(bytearray(64))))"
                                     )[1][0]["x"])
         decode(good[:hp.O_INFO_PAGE] + b"\x02" + good[hp.O_INFO_PAGE + 1:])
+
+
+class _RefusingPage(_OldFirmware):
+    """A transport whose device refuses GET_INFO page 1 with an error code (the firmware's answer to a page it
+    lacks: RES_OUT_OF_RANGE, nothing changed): page 1 sent as page 2."""
+
+    def write(self, rep):
+        rep = bytearray(rep)
+        if rep[0] == hp.CMD_GET_INFO and rep[hp.O_ARG]:
+            rep[hp.O_ARG] = 2
+            hp.seal(rep)
+        self.t.write(bytes(rep))
+
+
+def test_own_limits_is_none_when_a_board_refuses_page_1_and_info_says_which_firmware_has_it(monkeypatch, capsys):
+    """Review rev-lims F7: Device.own_limits raised when a board refused page 1 (info, selftest's restore and every
+    refusal's Device.info stopped there); now None, as for a board that answers page 0. FW_VERSION 0.3.0 marks
+    the firmware with page 1, and info's advice names it."""
+    from steadytouch import cli
+    from steadytouch.device import Device
+    from steadytouch.protocol import FW_OWN_LIMITS
+    from steadytouch.transport import open_transport
+
+    import contextlib
+
+    url = "sim://steady?channels=2"
+    with open_transport(url) as t:
+        d = Device(_RefusingPage(t))
+        assert d.own_limits() is None
+        i = d.info()
+        assert i.held and i.nominal is None and i.firmware == "0.3.0" == ".".join(map(str, FW_OWN_LIMITS))
+
+    @contextlib.contextmanager
+    def refusing(u):
+        with open_transport(u) as t:
+            yield _RefusingPage(t)
+
+    monkeypatch.setattr(cli, "open_transport", refusing)
+    assert cli.main(["info", "--device", url]) == 0
+    out = capsys.readouterr().out
+    assert "firmware 0.3.0 does not report the board's own limits beside the lowered ones (GET_INFO page 1, " \
+           "firmware 0.3.0 on): `steadytouch flash` updates it" in out, out

@@ -630,3 +630,36 @@ def test_selftest_on_firmware_without_page_1_never_raises_a_soft_limit_and_says_
     assert not i.held and (i.i_max_ua, i.q_max_pc) == (9650, 9_650_000)
     line = [s for s in said if s.startswith("soft limits stay")]
     assert len(line) == 1 and "I 500..9650 uA, Q <= 9650000 pC" in line[0] and "`steadytouch limits` raises" in line[0]
+
+
+@pytest.mark.parametrize("how", ["aborted", "no store"])
+def test_a_self_test_that_stores_nothing_never_raises_a_soft_limit(tmp_path, monkeypatch, how):
+    """Review rev-lims F4 (sim://, as the reviewer ran it): a fresh board boots held (soft 9650 uA / 9.65 uC);
+    DAC gains applied in RAM lift the hold, the soft limits stay lowered (the firmware never raises them). A
+    self-test that then stops (or runs without --store) put the limits back 'as set, capped at the hard limits in
+    force': 10000 uA / 10 uC, raised with nothing stored. Now capped at what they were before it ran."""
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
+    url = "sim://steady?load=10000"
+    said = []
+    with open_transport(url) as t:
+        d = Device(t)
+        assert d.info().held and d.info().i_max_ua == 9650
+        d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])  # RAM only: the hold lifts
+        i1 = d.info()
+        assert (i1.held, i1.hard_i_max_ua, i1.i_max_ua, i1.q_max_pc) == (False, 10000, 9650, 9_650_000)
+        before = _soft(i1)
+        if how == "aborted":
+            def boom(*a):
+                raise st.SelfTestError("interrupted (test)")
+
+            with pytest.raises(st.SelfTestError):
+                st.run(url, 10000, None, 4, True, None, said.append, _first_is(t), measure_with=boom)
+        else:
+            assert st.run(url, 10000, None, 4, False, None, said.append, _first_is(t)) == 0
+        i2 = d.info()
+        assert (i2.held, i2.hard_i_max_ua) == (False, 10000)  # the RAM gains put back: the hold stays lifted
+        assert _soft(i2) == before, (_soft(i2), before, said)
+    assert not (tmp_path / "vmon_cal.txt").exists()

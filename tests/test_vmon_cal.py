@@ -663,3 +663,57 @@ def test_store_keeps_the_other_builds_lines_on_the_rp2_boards_path(tmp_path):
     ok, (values, state) = eval(p.stdout.strip().splitlines()[-1])
     assert ok is True and state == hp.VMON_LOADED
     assert values == [(1011000, 150, 0), None, (1030000, -200, 994000), (0, 0, 1012000)]
+
+
+def test_a_file_past_the_size_cap_is_ignored_at_boot_and_replaced_by_a_store_in_a_small_heap(tmp_path):
+    """Review rev-lims F2: store read the old file whole to keep other builds' lines, so a big file (a
+    recording copied over it by mistake) ran a 146 KB chip out of memory and every store failed. Now boot,
+    kept and flash's read stop at CAL_MAX_BYTES: a longer file is one boot ignores, and a store replaces
+    it. Run in the MicroPython VM with a 100 KB heap (MemoryError before)."""
+    import subprocess
+
+    from conftest import SHARED, tool
+
+    cap = vmon_cal.CAL_MAX_BYTES
+    ok = FOUR.encode()
+    at_cap = ok + b"#" * (cap - len(ok) - 1) + b"\n"
+    cases = {"at cap": at_cap, "one past": at_cap + b"\n", "128 KB": (b"not a correction: a recording\n" * 4500),
+             "128 KB valid start": ok + b"# note\n" * 19000}
+    for k, data in enumerate(cases.values()):
+        (tmp_path / f"{k}.txt").write_bytes(data)
+    script = f"""
+import vmon_cal
+for k in range({len(cases)}):
+    p = {str(tmp_path)!r} + "/%d.txt" % k
+    st = vmon_cal.boot_load(p, 2)[1]
+    kept = vmon_cal.kept(p, 2)
+    ok = vmon_cal.store(p, [(1010000, 0, 1000000), None])
+    print(repr((st, kept, ok, vmon_cal.boot_load(p, 4))))
+"""
+    env = dict(__import__("os").environ, MICROPYPATH=f"{SHARED}:{FIRMWARE}")
+    p = subprocess.run([tool("micropython"), "-X", "heapsize=100K", "-c", script], capture_output=True, text=True,
+                       timeout=60, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    rows = dict(zip(cases, [eval(ln) for ln in p.stdout.splitlines()]))
+    four = [(1020000, 100, 0), (990000, -50, 1006000), (1030000, -200, 994000), (0, 0, 1012000)]
+    assert rows["at cap"][:3] == (hp.VMON_LOADED, [(2,) + four[2], (3,) + four[3]], True)
+    assert rows["at cap"][3] == ([(1010000, 0, 1000000), None] + four[2:], hp.VMON_LOADED)
+    for name in ("one past", "128 KB", "128 KB valid start"):
+        assert rows[name] == (hp.VMON_BAD, [], True, ([(1010000, 0, 1000000), None, None, None], hp.VMON_LOADED)), \
+            name
+    assert "longer than 4096 bytes" in str(pytest.raises(ValueError, vmon_cal.entries, at_cap + b"\n").value)
+
+
+def test_kept_counts_a_memory_error_as_a_file_boot_would_ignore(tmp_path, monkeypatch):
+    """A MemoryError reading or checking the old file: nothing kept, the store goes on (was: the store failed)."""
+    p = tmp_path / "vmon_cal.txt"
+    p.write_text(FOUR)
+
+    def no_memory(text):
+        raise MemoryError("memory allocation failed")
+
+    monkeypatch.setattr(vmon_cal, "entries", no_memory)
+    assert vmon_cal.kept(str(p), 2) == []
+    assert vmon_cal.store(str(p), [(1011000, 150, 0), None])
+    monkeypatch.undo()
+    assert vmon_cal.parse(p.read_bytes(), 4) == [(1011000, 150, 0), None, None, None]

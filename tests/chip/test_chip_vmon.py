@@ -189,3 +189,36 @@ print([held, [c.stop for c in s.chans], [c.armed for c in s.chans], [c.hard_i_d 
     assert eval(out.strip().splitlines()[-1]) == [[held_i, cfg.HARD_Q_MAX_PC * hp.VMON_DAC_PPM_MIN // 1000000], [hp.STOP_LIMIT] * 2,
                          [False, False], [held_i, held_i]]
     assert r["pulses"] == [] and r["gate"] == [0, 0]
+
+
+@pytest.mark.parametrize("name", ["130 channel lines", "4 KB of blank lines"])
+def test_a_store_over_the_longest_file_boot_reads_finishes_within_the_watchdog(chip_host, cfg, tmp_path, name):
+    """Review rev-lims F2: 130 channel lines (2.8 KB, loaded at boot then) made a HID store read, keep and write
+    them all: the watchdog (500 ms) reset the board mid-store, every store after likewise. Now channels are 0..3
+    and the file at most 4 KB: the 130-line file is one boot ignores (replaced whole), and the longest file boot
+    loads (4 096 bytes, mostly blank lines: the most lines to split) is read, kept and replaced in time."""
+    cmd = Commands()
+    chip = chip_host.boot(chip_host.image)
+    head = "steadytouch monitor correction v1\n"
+    if name == "130 channel lines":
+        data = (head + "".join("%d 1000000 0 1000000\n" % k for k in range(130))).encode()
+        boot = hp.VMON_BAD
+    else:
+        data = (head + "2 1000000 0 1000000\n").encode()
+        data += b"\n" * (4096 - len(data))
+        boot = hp.VMON_LOADED
+    chip.put(data, "/vmon_cal.txt")
+    sent = [cmd.get_info(), cmd.set_vmon_all([(1010000, 0, 1000000), (1010000, 0, 1000000)], store=True),
+            cmd.get_info(), cmd.set_vmon_all([(1010000, 0, 1000000), (1010000, 0, 1000000)], store=True),
+            cmd.get_info()]
+    reps = _run(chip, cfg, sent, ms=1500)
+    acks = [(r.command, r.result) for r in reps if isinstance(r, Ack)]
+    info = [r.vmon_state for r in reps if isinstance(r, Info)]
+    assert acks == [(hp.CMD_SET_VMON, hp.RES_OK)] * 2, acks
+    assert info == [boot, hp.VMON_STORED, hp.VMON_STORED], info
+    fs = tmp_path / "fs.bin"
+    chip.save_fs(fs)
+    chip = chip_host.boot(fs)  # a reset: what the store left in the flash
+    text = chip.exec("print(open('/vmon_cal.txt').read())")
+    kept = "2 1000000 0 1000000" in text
+    assert kept == (boot == hp.VMON_LOADED) and "0 1010000 0 1000000" in text and len(text) < 400, text

@@ -139,7 +139,8 @@ def test_dry_run_lists_everything_and_stops_on_missing_libraries(tmp_path):
 def test_dry_run_with_the_libraries_lists_them(tmp_path):
     p = run("flash", "--dry-run", "--lib-dir", str(BOARD_LIB), "--build-dir", str(tmp_path / "dev"))
     assert p.returncode == 0, p.stderr
-    assert ":/lib/usb/device/hid.mpy" in p.stdout and "sha256 checked" in p.stdout and "nothing was sent" in p.stdout
+    assert ":/lib/usb/device/hid.mpy" in p.stdout and "sha256 checked" in p.stdout
+    assert "dry run: nothing is copied, removed or written" in p.stdout
     assert "ask its HID interface hid://1209:0001 for the version (GET_INFO)" in p.stdout
     p = run("flash", "--dry-run", "--no-hid-check", "--lib-dir", str(BOARD_LIB), "--build-dir", str(tmp_path / "dev"))
     assert p.returncode == 0 and "read its version back over the serial REPL (--no-hid-check)" in p.stdout
