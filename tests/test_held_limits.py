@@ -419,13 +419,15 @@ result(**r)
 class _OldFirmware:
     """A transport whose device ignores GET_INFO's page byte, as firmware before page 1 does (it answers page 0)."""
 
+    SENT_PAGE = 0  # what page 1 reaches the device as
+
     def __init__(self, t):
         self.t = t
 
     def write(self, rep):
         rep = bytearray(rep)
         if rep[0] == hp.CMD_GET_INFO and rep[hp.O_ARG]:
-            rep[hp.O_ARG] = 0
+            rep[hp.O_ARG] = self.SENT_PAGE
             hp.seal(rep)
         self.t.write(bytes(rep))
 
@@ -483,12 +485,7 @@ class _RefusingPage(_OldFirmware):
     """A transport whose device refuses GET_INFO page 1 with an error code (the firmware's answer to a page it
     lacks: RES_OUT_OF_RANGE, nothing changed): page 1 sent as page 2."""
 
-    def write(self, rep):
-        rep = bytearray(rep)
-        if rep[0] == hp.CMD_GET_INFO and rep[hp.O_ARG]:
-            rep[hp.O_ARG] = 2
-            hp.seal(rep)
-        self.t.write(bytes(rep))
+    SENT_PAGE = 2
 
 
 def test_own_limits_is_none_when_a_board_refuses_page_1_and_info_says_which_firmware_has_it(monkeypatch, capsys):
