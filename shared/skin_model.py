@@ -63,6 +63,11 @@ FAST_MODEL_RP_RISE_LOG2 = const(3)
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
 # taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
 FAST_MODEL_STEP_LOG2 = const(3)
+# ... and so is such a miss whose two-pulse refit puts Cp above the fitted one by more than this
+# (log2 Q.16: 1/64 octave, the rounding of the reads): the skin's Cp is c x contact area, a peel
+# lowers it and hydration leaves it, so such a refit is a pair of readings across a step (a peel
+# right after another step): it is refused, Cp kept (review of session 17; docs/controller.md, rule 3)
+FAST_MODEL_CP_ABOVE = const(0x400)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -954,7 +959,8 @@ class SkinModel:
         c.before, Rp 0 if none). After a model jump
         that missed its prediction and moved I, Cp is refitted first. On a fresh rise (no
         model jump before, or a reading that missed it by more than Rp/2**FAST_MODEL_STEP_LOG2
-        with no refit taken), the contact hypothesis is also solved and the smaller charge taken. Returns the
+        with no refit taken or a refit refused: Cp above the fitted one by FAST_MODEL_CP_ABOVE),
+        the contact hypothesis is also solved and the smaller charge taken. Returns the
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
         step: never the larger hydration answer nor a search's unfinished value).
@@ -1065,6 +1071,9 @@ class SkinModel:
                 lc_was = v[_V_LC]
                 self.refit_cp()
                 if big and v[_V_LC] == lc_was:
+                    fresh = 1
+                elif big and v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
+                    v[_V_LC] = lc_was
                     fresh = 1
             elif big:
                 fresh = 1
