@@ -158,7 +158,10 @@ _V_ACH_OK = const(39)
 _V_ACH_LS = const(40)
 _V_ACH_LC = const(41)
 _V_ACH_W = const(42)
-_V_N = const(43)
+_V_SNA = const(43)  # the pulse on which the last jump saw a step of the skin and gave no answer:
+_V_SNA_I = const(44)  # its Rp (0: none), I and T
+_V_SNA_T = const(45)
+_V_N = const(46)
 _V_BIAS = const(0x10000000)
 
 
@@ -974,6 +977,10 @@ class SkinModel:
         pk = ptr32(prev)
         p0rp = pk[_KB_RP]
         bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
+        # the last jump saw a step of the skin on the pulse before and gave no answer: both pulses
+        # are on the skin as it is now (rule 4's refit applies to them)
+        bstep = 1 if (p0rp > 0 and v[_V_SNA] == p0rp and v[_V_SNA_I] == pk[_KB_I] and v[_V_SNA_T] == pk[_KB_T]) else 0
+        v[_V_SNA] = 0
         j = 3  # the log2 words to compute (below): from j = 0 the pulse before's too
         if p0rp > 0:
             v[_V_BEFORE + _P_RP] = p0rp
@@ -1062,11 +1069,13 @@ class SkinModel:
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
         fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
+        step = 0  # a step of the skin seen on the pulse just measured
         if jumped and p0rp > 0:
             miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             am = miss if miss >= 0 else 0 - miss
             big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
+            step = big
             if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 lc_was = v[_V_LC]
                 self.refit_cp()
@@ -1077,6 +1086,22 @@ class SkinModel:
                     fresh = 1
             elif big:
                 fresh = 1
+        elif p0rp > 0:
+            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+            if bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
+                # the pulse before saw the step and had no answer: the pair is on one skin, refit
+                lc_was = v[_V_LC]
+                self.refit_cp()
+                if v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
+                    v[_V_LC] = lc_was
+            elif i_k == pk[_KB_I] and t_k == pk[_KB_T]:
+                dr = rp_ohm - p0rp
+                if (dr if dr >= 0 else 0 - dr) > (rp_ohm >> FAST_MODEL_STEP_LOG2):
+                    step = 1
+        if step:  # (cleared below when the jump gives an answer)
+            v[_V_SNA] = rp_ohm
+            v[_V_SNA_I] = i_k
+            v[_V_SNA_T] = t_k
         lc = v[_V_LC] - _V_BIAS  # (self.lc)
         w0 = v[_V_WORK]
         ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
@@ -1176,6 +1201,7 @@ class SkinModel:
             rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
         v[_V_JUMPED] = 1
+        v[_V_SNA] = 0
         n = pk[_KC_MJ]  # (c.model_jumps)
         if n < _SAT30:
             pk[_KC_MJ] = n + 1
