@@ -193,6 +193,19 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             kb[_K_T] = t_k
             kb[_K_ST] = s_k
             st = int(from_q(c, int(line(c, rp2))))
+    elif st == _ST_T_MAX and ceiling == 0 and i > i_k and qf > (q_k << 4):
+        # entering the ceiling from the mE curve at a higher current I: Rp falls, at most as
+        # 1/I (the skin's current exponent beta < 1; a longer T only raises Rp), so along this
+        # path G >= -mQ Rp / L(Rp). The Newton step with that G does not pass the fixed point
+        # (the paper's step did: up to +38 % felt, an untrusted model): Q_k + (L - Q_k) / (1 + |G|)
+        lq = qf >> 4
+        x = int(muldiv(kb[_K_MQN], rp_ohm, kb[_K_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
+        g = 8192 if x >= lq << 1 else int(frac12(x, lq))  # |G| in Q.12, at most 2
+        q_new = q_k + int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP))
+        kb[_K_I] = i_k
+        kb[_K_T] = t_k
+        kb[_K_ST] = s_k
+        st = int(from_q(c, q_new << 4))
     return st
 
 

@@ -188,3 +188,25 @@ def test_a_peel_alone_reaching_the_ceiling_is_not_felt_above_target():
         _, alone = peel_after_gel_off(rng, None, 40)
         worst.append(round(alone, 3))
     assert max(worst) <= 0.05, [(k, w) for k, w in enumerate(worst) if w > 0.05]
+
+
+def test_entering_the_ceiling_at_a_higher_current_does_not_pass_the_fixed_point():
+    """MODE_FAST without a model (issue 13's study, seed 19, electrode 24: its averaged fit is not
+    trusted, so FAST runs model-free), realistic board, half peeled. The steps climb the mE curve
+    to T = 7920 us; the next step enters the duration ceiling at a *higher* current (355 -> 523 uA),
+    where Rp falls as the charge rises. The paper's step there was felt 38 % above target. Now a
+    Newton step with the steepest fall the skin allows (Rp at most as 1/I: G >= -mQ Rp / L):
+    -1.3 % on that pulse, and no pulse of the run above +5 %."""
+    rng = np.random.default_rng(19)
+    for _ in range(25):
+        mk = bench.random_electrode(rng)
+    corr = bench.selftest_correction("real")
+    rows, target, _ = bench.run(sc.MODE_FAST, bench.STUDY_EVENTS, bench.STUDY_N, i0=1000, board="real", sweeps=10,
+                                electrode=mk, correction=corr, seed=1000 + 24)
+    assert not bench.FIT_INFO["trusted"], bench.FIT_INFO  # no model sent: MODE_FAST alone
+    a = bench.STUDY_EVENTS[2].pulse
+    assert bench.STEP_NAMES[2] == "half peeled"
+    ceil = [p for p in range(a, a + 10) if rows[p, 2] >= 7900]
+    assert ceil and rows[ceil[0] + 1, 1] > rows[ceil[0], 1], rows[a:a + 10]  # the case: into the ceiling, I rising
+    reach, surge, _ = bench.within(rows, target, bench.STUDY_EVENTS, bench.STUDY_N, 0.01)
+    assert max(surge) <= 0.05, surge
