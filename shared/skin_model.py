@@ -1088,13 +1088,14 @@ class SkinModel:
                 fresh = 1
         elif p0rp > 0:
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+            dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
             if bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
                 lc_was = v[_V_LC]
                 self.refit_cp()
                 if v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
                     v[_V_LC] = lc_was
-            elif i_k == pk[_KB_I] and t_k == pk[_KB_T]:
+            elif (dl if dl >= 0 else 0 - dl) <= 0x800 and (dt if dt >= 0 else 0 - dt) <= 0x800:
                 dr = rp_ohm - p0rp
                 if (dr if dr >= 0 else 0 - dr) > (rp_ohm >> FAST_MODEL_STEP_LOG2):
                     step = 1
