@@ -68,6 +68,7 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # lowers it and hydration leaves it, so such a refit is a pair of readings across a step (a peel
 # right after another step): it is refused, Cp kept (review of session 17; docs/controller.md, rule 3)
 FAST_MODEL_CP_ABOVE = const(0x400)
+_L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -1089,16 +1090,17 @@ class SkinModel:
         elif p0rp > 0:
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
-            if bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
+            # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
+            # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
+            dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
+            if (dr if dr >= 0 else 0 - dr) - (dl if dl >= 0 else 0 - dl) - (dt if dt >= 0 else 0 - dt) > _L_STEP:
+                step = 1
+            elif bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
                 lc_was = v[_V_LC]
                 self.refit_cp()
                 if v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
                     v[_V_LC] = lc_was
-            elif (dl if dl >= 0 else 0 - dl) <= 0x800 and (dt if dt >= 0 else 0 - dt) <= 0x800:
-                dr = rp_ohm - p0rp
-                if (dr if dr >= 0 else 0 - dr) > (rp_ohm >> FAST_MODEL_STEP_LOG2):
-                    step = 1
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = rp_ohm
             v[_V_SNA_I] = i_k
