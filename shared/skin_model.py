@@ -162,7 +162,8 @@ _V_ACH_W = const(42)
 _V_SNA = const(43)  # the pulse on which the last jump saw a step of the skin and gave no answer:
 _V_SNA_I = const(44)  # its Rp (0: none), I and T
 _V_SNA_T = const(45)
-_V_N = const(46)
+_V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
+_V_N = const(47)
 _V_BIAS = const(0x10000000)
 
 
@@ -968,7 +969,8 @@ class SkinModel:
         status, or -1 when the model has no answer (the caller goes on without it), -2
         when a root search ran out of FAST_MODEL_WORK_MAX (the caller takes the paper's
         step: never the larger hydration answer nor a search's unfinished value).
-        A fresh rise into the duration ceiling that the model predicts to raise Rp by more
+        A fresh rise (or one after a miss above Rp/2**FAST_MODEL_STEP_LOG2 of a model a refit had
+        set, refit or not) into the duration ceiling that the model predicts to raise Rp by more
         than 1/8 is halved (docs/controller.md, rule 6).
         q_k is i_k * t_k (its log2 is computed with the pulse's words, below); from_q is the core's Eq. 4
         with the bounds (sensation_core._from_q). (viper: the model's state from self.v;
@@ -1071,12 +1073,16 @@ class SkinModel:
         v[_V_ACH_OK] = 0
         fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
         step = 0  # a step of the skin seen on the pulse just measured
+        bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
+        rft = v[_V_RFT]
+        v[_V_RFT] = 0
         if jumped and p0rp > 0:
             miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
             am = miss if miss >= 0 else 0 - miss
             big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
             step = big
+            bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
             if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 lc_was = v[_V_LC]
                 self.refit_cp()
@@ -1085,6 +1091,8 @@ class SkinModel:
                 elif big and v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
                     v[_V_LC] = lc_was
                     fresh = 1
+                elif v[_V_LC] != lc_was:
+                    v[_V_RFT] = 1
             elif big:
                 fresh = 1
         elif p0rp > 0:
@@ -1101,6 +1109,8 @@ class SkinModel:
                 self.refit_cp()
                 if v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
                     v[_V_LC] = lc_was
+                elif v[_V_LC] != lc_was:
+                    v[_V_RFT] = 1
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = rp_ohm
             v[_V_SNA_I] = i_k
@@ -1189,7 +1199,7 @@ class SkinModel:
         v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
         v[_V_PROBE + _P_LT] = pk[_KC_T]
         rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
-        if (q16 > base and fresh and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
+        if (q16 > base and (fresh or bigm) and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
             # was no model jump) that enters the duration ceiling, where the model moves I at
