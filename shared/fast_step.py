@@ -50,6 +50,7 @@ _RP_MIN_OHM = const(500)
 _RP_MAX_OHM = const(200000)
 _SAT30 = const(0x3FFFFFFF)
 _MQ_CAP = const(0x1FFFFFFF)
+_K_TMAX = const(4)  # t_max_us
 _K_QMAX = const(5)  # words of Controller._k: q_max_pc, mQ's numerator (pC) and denominator (ohm)
 _K_MQN = const(12)
 _K_MQD = const(13)
@@ -193,15 +194,20 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             kb[_K_T] = t_k
             kb[_K_ST] = s_k
             st = int(from_q(c, int(line(c, rp2))))
-    elif st == _ST_T_MAX and ceiling == 0 and i > i_k and qf > (q_k << 4):
+    elif (st & _ST_T_MAX) != 0 and ceiling == 0 and i > i_k and qf > (q_k << 4):
         # entering the ceiling from the mE curve at a higher current I: Rp falls, at most as
-        # 1/I (the skin's current exponent beta < 1; a longer T only raises Rp), so along this
-        # path G >= -mQ Rp / L(Rp). The Newton step with that G does not pass the fixed point
-        # (the paper's step did: up to +38 % felt, an untrusted model): Q_k + (L - Q_k) / (1 + |G|)
+        # 1/I (the skin's current exponent beta < 1; a longer T only raises Rp): L(Rp(Q)) >=
+        # h(Q) = L(Rp_k Q_k / Q), convex and falling, steepest at Q_k: G = -mQ Rp_k / Q_k. The
+        # Newton step on h from Q_k stays below h's fixed point, so below the loop's (the paper's
+        # step passed it: up to +38 % felt, an untrusted model): Q_k + (L - Q_k) / (1 + |G|), and
+        # at least I_k at t_max (below I_k, Rp would rise instead: review of session 18)
         lq = qf >> 4
         x = int(muldiv(kb[_K_MQN], rp_ohm, kb[_K_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
-        g = 8192 if x >= lq << 1 else int(frac12(x, lq))  # |G| in Q.12, at most 2
+        g = 8192 if x >= q_k << 1 else int(frac12(x, q_k))  # |G| in Q.12, at most 2
         q_new = q_k + int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP))
+        q_lo = i_k * kb[_K_TMAX]
+        if q_new < q_lo:
+            q_new = q_lo if q_lo < lq else lq
         kb[_K_I] = i_k
         kb[_K_T] = t_k
         kb[_K_ST] = s_k

@@ -159,8 +159,8 @@ _V_ACH_OK = const(39)
 _V_ACH_LS = const(40)
 _V_ACH_LC = const(41)
 _V_ACH_W = const(42)
-_V_SNA = const(43)  # the pulse on which the last jump saw a step of the skin and gave no answer:
-_V_SNA_I = const(44)  # its Rp (0: none), I and T
+_V_SNA = const(43)  # 1: the last jump saw a step of the skin on its pulse and gave no answer;
+_V_SNA_I = const(44)  # that pulse's I and T
 _V_SNA_T = const(45)
 _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
 _V_N = const(47)
@@ -982,7 +982,7 @@ class SkinModel:
         bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
         # the last jump saw a step of the skin on the pulse before and gave no answer: both pulses
         # are on the skin as it is now (rule 4's refit applies to them)
-        bstep = 1 if (p0rp > 0 and v[_V_SNA] == p0rp and v[_V_SNA_I] == pk[_KB_I] and v[_V_SNA_T] == pk[_KB_T]) else 0
+        bstep = 1 if (p0rp > 0 and v[_V_SNA] != 0 and v[_V_SNA_I] == pk[_KB_I] and v[_V_SNA_T] == pk[_KB_T]) else 0
         v[_V_SNA] = 0
         j = 3  # the log2 words to compute (below): from j = 0 the pulse before's too
         if p0rp > 0:
@@ -1112,7 +1112,7 @@ class SkinModel:
                 elif v[_V_LC] != lc_was:
                     v[_V_RFT] = 1
         if step:  # (cleared below when the jump gives an answer)
-            v[_V_SNA] = rp_ohm
+            v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
             v[_V_SNA_I] = i_k
             v[_V_SNA_T] = t_k
         lc = v[_V_LC] - _V_BIAS  # (self.lc)

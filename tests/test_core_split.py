@@ -21,7 +21,7 @@ from strategies import scenario
 COPIES = {
     fast_step: {"_ST_OK": sc.ST_OK, "_ST_T_MAX": sc.ST_T_MAX, "_RP_MIN_OHM": sc.RP_MIN_OHM,
                 "_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1,
-                "_K_QMAX": sc._K_QMAX, "_K_MQN": sc._K_MQN, "_K_MQD": sc._K_MQD, "_K_B": sc._K_B,
+                "_K_QMAX": sc._K_QMAX, "_K_TMAX": sc._K_TMAX, "_K_MQN": sc._K_MQN, "_K_MQD": sc._K_MQD, "_K_B": sc._K_B,
                 "_K_I": sc._K_I, "_K_T": sc._K_T, "_K_ST": sc._K_ST, "_K_DR": sc._K_DR, "_K_FJ": sc._K_FJ,
                 "_K_MC": sc._K_MC, "_W_BIAS": sc._W_BIAS,
                 "_V_ON": skin_model._V_ON, "_V_JUMPED": skin_model._V_JUMPED},
