@@ -66,7 +66,8 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # ... and so is such a miss whose two-pulse refit puts Cp above the fitted one by more than this
 # (log2 Q.16: 1/64 octave, the rounding of the reads): the skin's Cp is c x contact area, a peel
 # lowers it and hydration leaves it, so such a refit is a pair of readings across a step (a peel
-# right after another step): it is refused, Cp kept (review of session 17; docs/controller.md, rule 3)
+# right after another step): it is refused, Cp kept (review of session 17; docs/controller.md,
+# rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -923,10 +924,11 @@ class SkinModel:
         return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
     @micropython.viper
-    def refit_cp(self):
+    def refit_cp(self, up: int) -> int:
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
-        when within 1/8 ... 2 x the Cp set. (viper: Rs, beta and the pulses from self.v.)"""
+        when within 1/8 of the Cp set ... up (log2 Q.16) above it; returns 1 when taken.
+        (viper: Rs, beta and the pulses from self.v.)"""
         vv = self.v
         v = ptr32(vv)
         b = v[_V_BETA]  # mul_q16(x, beta), inline below (beta >= 0)
@@ -953,8 +955,10 @@ class SkinModel:
                 _root(vv, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
                 lc = v[_V_LCTWO] - _V_BIAS
                 lc_set = int(self.lc_set)
-                if lc_set - 0x30000 <= lc and lc <= lc_set + 0x10000:
+                if lc_set - 0x30000 <= lc and lc <= lc_set + up:
                     v[_V_LC] = lc + _V_BIAS  # (self.lc)
+                    return 1
+        return 0
 
     @micropython.viper
     def jump(self, qf: int, q_k: int, rp_ohm: int, i_k: int, t_k: int, jumped: int, prev, from_q) -> int:
@@ -1084,15 +1088,10 @@ class SkinModel:
             step = big
             bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
             if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
-                lc_was = v[_V_LC]
-                self.refit_cp()
-                if big and v[_V_LC] == lc_was:
-                    fresh = 1
-                elif big and v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
-                    v[_V_LC] = lc_was
-                    fresh = 1
-                elif v[_V_LC] != lc_was:
+                if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                     v[_V_RFT] = 1
+                elif big:
+                    fresh = 1
             elif big:
                 fresh = 1
         elif p0rp > 0:
@@ -1105,12 +1104,7 @@ class SkinModel:
                 step = 1
             elif bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
-                lc_was = v[_V_LC]
-                self.refit_cp()
-                if v[_V_LC] - _V_BIAS > int(self.lc_set) + FAST_MODEL_CP_ABOVE:
-                    v[_V_LC] = lc_was
-                elif v[_V_LC] != lc_was:
-                    v[_V_RFT] = 1
+                v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
             v[_V_SNA_I] = i_k
