@@ -31,7 +31,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
+from fixmath import _EXP_TAB, _LOG_TAB, frac12, log2q, muldiv, word
 
 # fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
 # array (one global lookup a _root call): _root's inline interpolations read the
@@ -91,6 +91,7 @@ _KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_cor
 _KC_T = const(23)
 _KC_ST = const(24)
 _KC_MJ = const(29)  # c.model_jumps
+_KC_TMAX = const(4)  # c.t_max_us (sensation_core._K_TMAX)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -1078,6 +1079,7 @@ class SkinModel:
         fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
         step = 0  # a step of the skin seen on the pulse just measured
         bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
+        unchk = 0  # a refitted Cp not yet checked by a pulse that moved I
         rft = v[_V_RFT]
         v[_V_RFT] = 0
         if jumped and p0rp > 0:
@@ -1087,6 +1089,9 @@ class SkinModel:
             big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
             step = big
             bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
+            if rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
+                unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
+                v[_V_RFT] = 1  # straddle a second step: review of session 18); the refit stays unchecked
             if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                     v[_V_RFT] = 1
@@ -1105,6 +1110,9 @@ class SkinModel:
             elif bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
                 v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
+            elif rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
+                unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
+                v[_V_RFT] = 1
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
             v[_V_SNA_I] = i_k
@@ -1190,6 +1198,21 @@ class SkinModel:
         c = self.c
         s_k = pk[_KC_ST]  # (c.status)
         st = int(from_q(c, q16))
+        if unchk and q16 > base and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0 and pk[_KC_I] > i_k:
+            # an unchecked refit's rise into the ceiling at a higher current: at most fast_step's
+            # bound there (Rp falls at most as 1/I: the Newton step on L(Rp_k Q_k / Q) from Q_k)
+            x = int(muldiv(v[_V_MQN], rp_ohm, v[_V_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
+            g = 8192 if x >= q_k << 1 else int(frac12(x, q_k))
+            lq = qf >> 4
+            qh = q_k + (int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP)) if lq > q_k else 0)
+            ql = i_k * pk[_KC_TMAX]
+            if qh < ql:
+                qh = ql
+            if (q16 >> 4) > qh:  # (then qh << 4 < q16 < 2**30)
+                q16 = qh << 4
+                pk[_KC_I] = i_k  # (c.i_ua, c.t_us)
+                pk[_KC_T] = t_k
+                st = int(from_q(c, q16))
         v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
         v[_V_PROBE + _P_LT] = pk[_KC_T]
         rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
