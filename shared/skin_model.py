@@ -1091,7 +1091,7 @@ class SkinModel:
             bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
             if rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
                 unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
-                v[_V_RFT] = 1  # straddle a second step: review of session 18); the refit stays unchecked
+                # straddle a second step: review of session 18)
             if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
                 if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                     v[_V_RFT] = 1
@@ -1112,7 +1112,6 @@ class SkinModel:
                 v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
             elif rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
                 unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
-                v[_V_RFT] = 1
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
             v[_V_SNA_I] = i_k
@@ -1210,13 +1209,14 @@ class SkinModel:
                 qh = ql
             if (q16 >> 4) > qh:  # (then qh << 4 < q16 < 2**30)
                 q16 = qh << 4
+                unchk = 2  # held: rule 6 does not halve it again (below I_k, Rp would rise)
                 pk[_KC_I] = i_k  # (c.i_ua, c.t_us)
                 pk[_KC_T] = t_k
                 st = int(from_q(c, q16))
         v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
         v[_V_PROBE + _P_LT] = pk[_KC_T]
         rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
-        if (q16 > base and (fresh or bigm) and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
+        if (q16 > base and (fresh or bigm) and unchk != 2 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
             # was no model jump) that enters the duration ceiling, where the model moves I at

@@ -283,6 +283,8 @@ def test_a_second_step_one_pulse_after_a_peel_does_not_ride_the_marked_refit():
     marked pair's refit straddled it (Cp 14.3 for a true 13.0); the next pulse hardly moved I, so
     nothing checked that Cp, and the jump rose into the ceiling at a higher current: +32.5 % felt.
     While a refitted Cp is unchecked, such a rise is now held to fast_step's bound there (the
-    Newton step with Rp falling at most as 1/I): -49 %, then -0.2 %."""
+    Newton step with Rp falling at most as 1/I, at least I_k at t_max), and rule 6 does not halve
+    it again (below I_k Rp rises: a first version did, and the +20 kOhm step at 700 uA with 0.3 %
+    noise read past RP_MAX and stopped): -21.6 %, then +2.2 %."""
     events = [bench.Event(60, contact=0.5), bench.Event(61, contact=0.25)]
     assert exact_run_with_a_bad_read(13, 4, 58, 1.0, n=90, events=events) <= 0.05
