@@ -195,24 +195,35 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
             kb[_K_ST] = s_k
             st = int(from_q(c, int(line(c, rp2))))
     elif (st & _ST_T_MAX) != 0 and ceiling == 0 and i > i_k and qf > (q_k << 4):
-        # entering the ceiling from the mE curve at a higher current I: Rp falls, at most as
-        # 1/I (the skin's current exponent beta < 1; a longer T only raises Rp): L(Rp(Q)) >=
-        # h(Q) = L(Rp_k Q_k / Q), convex and falling, steepest at Q_k: G = -mQ Rp_k / Q_k. The
-        # Newton step on h from Q_k stays below h's fixed point, so below the loop's (the paper's
-        # step passed it: up to +38 % felt, an untrusted model): Q_k + (L - Q_k) / (1 + |G|), and
-        # at least I_k at t_max (below I_k, Rp would rise instead: review of session 18)
+        # entering the ceiling from the mE curve at a higher current I: ceiling_bound's Newton
+        # step, not the paper's step (that passed the fixed point: up to +38 % felt, an untrusted
+        # model; the I_k floor: review of session 18)
         lq = qf >> 4
-        x = int(muldiv(kb[_K_MQN], rp_ohm, kb[_K_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
-        g = 8192 if x >= q_k << 1 else int(frac12(x, q_k))  # |G| in Q.12, at most 2
-        q_new = q_k + int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP))
-        q_lo = i_k * kb[_K_TMAX]
-        if q_new < q_lo:
-            q_new = q_lo if q_lo < lq else lq
+        q_new = int(ceiling_bound(c._k, q_k, rp_ohm, lq, i_k))
+        if q_new > lq:  # (only by the I_k floor)
+            q_new = lq
         kb[_K_I] = i_k
         kb[_K_T] = t_k
         kb[_K_ST] = s_k
         st = int(from_q(c, q_new << 4))
     return st
+
+
+@micropython.viper
+def ceiling_bound(k, q_k: int, rp_ohm: int, lq: int, i_k: int) -> int:
+    """The charge (pC) of a step from the pulse just measured (q_k, Rp = rp_ohm, current i_k)
+    into the duration ceiling at a higher current, towards the law's charge lq (pC): Rp falls at
+    most as 1/I there (beta < 1; a longer T only raises Rp), so L(Rp(Q)) >= h(Q) = L(Rp_k Q_k / Q),
+    convex and falling, steepest at Q_k: G = -mQ Rp_k / Q_k, and the Newton step on h from Q_k,
+    Q_k + (lq - Q_k) / (1 + |G|), stays below the loop's fixed point; at least I_k at t_max (below
+    I_k, Rp would rise instead). k: the controller's int array c._k (mQ, t_max). Used by
+    fast_pulse and by the skin model's unchecked refit (skin_model.SkinModel.jump)."""
+    kb = ptr32(k)
+    x = int(muldiv(kb[_K_MQN], rp_ohm, kb[_K_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
+    g = 8192 if x >= q_k << 1 else int(frac12(x, q_k))  # |G| in Q.12, at most 2
+    q = q_k + (int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP)) if lq > q_k else 0)
+    q_lo = i_k * kb[_K_TMAX]
+    return q_lo if q < q_lo else q
 
 
 @micropython.viper

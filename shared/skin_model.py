@@ -31,7 +31,8 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
         return a
 
 
-from fixmath import _EXP_TAB, _LOG_TAB, frac12, log2q, muldiv, word
+from fast_step import ceiling_bound
+from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 
 # fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
 # array (one global lookup a _root call): _root's inline interpolations read the
@@ -91,7 +92,6 @@ _KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_cor
 _KC_T = const(23)
 _KC_ST = const(24)
 _KC_MJ = const(29)  # c.model_jumps
-_KC_TMAX = const(4)  # c.t_max_us (sensation_core._K_TMAX)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -1198,15 +1198,9 @@ class SkinModel:
         s_k = pk[_KC_ST]  # (c.status)
         st = int(from_q(c, q16))
         if unchk and q16 > base and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0 and pk[_KC_I] > i_k:
-            # an unchecked refit's rise into the ceiling at a higher current: at most fast_step's
-            # bound there (Rp falls at most as 1/I: the Newton step on L(Rp_k Q_k / Q) from Q_k)
-            x = int(muldiv(v[_V_MQN], rp_ohm, v[_V_MQD], 0, _MQ_CAP))  # mQ Rp (pC)
-            g = 8192 if x >= q_k << 1 else int(frac12(x, q_k))
-            lq = qf >> 4
-            qh = q_k + (int(muldiv(lq - q_k, 4096, 4096 + g, 0, _MQ_CAP)) if lq > q_k else 0)
-            ql = i_k * pk[_KC_TMAX]
-            if qh < ql:
-                qh = ql
+            # an unchecked refit's rise into the ceiling at a higher current: at most the
+            # model-free bound there (fast_step.ceiling_bound)
+            qh = int(ceiling_bound(prev, q_k, rp_ohm, qf >> 4, i_k))
             if (q16 >> 4) > qh:  # (then qh << 4 < q16 < 2**30)
                 q16 = qh << 4
                 unchk = 2  # held: rule 6 does not halve it again (below I_k, Rp would rise)
