@@ -828,6 +828,9 @@ def cmd_skin(a) -> int:
             f"worst misfit {m.worst_misfit:.3%}")
         if not f.trusted:
             say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
+            if f.shape_sd > skin.TRUST_SHAPE_SD and f.sweeps < 30:
+                say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): 30 are recommended, "
+                    f"{f.sweeps} were given (docs/calibration.md)")
         args = f.args()
     else:
         m = skin.fit(sweeps[0])

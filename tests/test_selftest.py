@@ -131,6 +131,7 @@ def test_skin_with_repeated_sweeps_reports_its_uncertainty_and_sends_no_model_it
         assert p.returncode == 0, p.stdout + p.stderr
         assert "6 sweeps averaged" in p.stdout and "Rp shape known to" in p.stdout
         assert ("not trusted" in p.stdout) is (not trusted)
+        assert ("30 are recommended, 6 were given" in p.stdout) is (not trusted)  # (its shape: 5 % noise)
         assert "sim://steady: skin: ok" in p.stdout
 
 
