@@ -71,15 +71,6 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
-# a two-pulse refit is tried only on a pulse that moved log2 I by more than this (Q.16: 1/8 octave):
-# on smaller moves the reads' noise (0.3-0.7 % on the realistic board) moves the refitted Cp by
-# tenths of an octave (rule 4; session 19)
-FAST_MODEL_REFIT_LI = const(0x2000)
-# a refit within this of the Cp set (log2 Q.16: 1/8 octave) is the Cp set: hydration leaves Cp,
-# and the reads' noise, not the skin, moves a refit that little (rule 4; session 19). Not from
-# below after a miss above Rp/8 of a model whose Cp a refit had set, nor on a pulse marked as a
-# step: the pair may hold a bad reading, and snapping up would make it a larger rise
-FAST_MODEL_CP_SNAP = const(0x2000)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -934,11 +925,10 @@ class SkinModel:
         return _root(v, _K_RP + (_V_PROBE << 8), ls, ls - 1, lc)
 
     @micropython.viper
-    def refit_cp(self, up: int, snap_lo: int) -> int:
+    def refit_cp(self, up: int) -> int:
         """Two-pulse refit: log2 Cp with which the model reads both the pulse just measured
         and the one before (the less charged of the two gives Cp, the other S), taken
-        when within 1/8 of the Cp set ... up (log2 Q.16) above it, as the Cp set when
-        from snap_lo below it to FAST_MODEL_CP_SNAP above it; returns 1 when taken.
+        when within 1/8 of the Cp set ... up (log2 Q.16) above it; returns 1 when taken.
         (viper: Rs, beta and the pulses from self.v.)"""
         vv = self.v
         v = ptr32(vv)
@@ -966,8 +956,6 @@ class SkinModel:
                 _root(vv, kind, lr, lr - 1, 0)  # (sets _V_LCTWO for the root itself)
                 lc = v[_V_LCTWO] - _V_BIAS
                 lc_set = int(self.lc_set)
-                if lc_set - snap_lo <= lc and lc <= lc_set + FAST_MODEL_CP_SNAP:
-                    lc = lc_set
                 if lc_set - 0x30000 <= lc and lc <= lc_set + up:
                     v[_V_LC] = lc + _V_BIAS  # (self.lc)
                     return 1
@@ -1104,10 +1092,8 @@ class SkinModel:
             if rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
                 unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
                 # straddle a second step: review of session 18)
-            if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > FAST_MODEL_REFIT_LI:
-                # (a refit below the Cp set is snapped up to it unless a refitted model missed big:
-                # its pair may hold a bad reading, and a larger Cp is a larger rise)
-                if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000, 0 if bigm else FAST_MODEL_CP_SNAP)):
+            if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
+                if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                     v[_V_RFT] = 1
                 elif big:
                     fresh = 1
@@ -1123,7 +1109,7 @@ class SkinModel:
                 step = 1
             elif bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
-                v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE, 0))  # (never snapped up: as bigm)
+                v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
             elif rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
                 unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
         if step:  # (cleared below when the jump gives an answer)
