@@ -828,8 +828,8 @@ def cmd_skin(a) -> int:
             f"worst misfit {m.worst_misfit:.3%}")
         if not f.trusted:
             say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
-            if f.shape_sd > skin.TRUST_SHAPE_SD and f.sweeps < 30:
-                say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): 30 are recommended, "
+            if f.shape_sd > skin.TRUST_SHAPE_SD and f.sweeps < skin.RECOMMENDED_SWEEPS:
+                say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): {skin.RECOMMENDED_SWEEPS} are recommended, "
                     f"{f.sweeps} were given (docs/calibration.md)")
         args = f.args()
     else:

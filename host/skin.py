@@ -109,6 +109,7 @@ def fit(pulses) -> SkinModel:
 # ---- repeated sweeps: an averaged fit that knows its own uncertainty ----
 TRUST_SHAPE_SD = 0.01  # the model is sent only if its predicted Rp shape is known to 1 % (1 sd) ...
 TRUST_MISFIT = 0.02  # ... and it fits the averaged pulses within 2 %
+RECOMMENDED_SWEEPS = 30  # sweep_wide 30 times: 330 pulses, 6.6 s at 50 Hz (docs/calibration.md)
 
 
 @dataclass
