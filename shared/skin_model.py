@@ -71,6 +71,8 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
+_L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
+# moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -1085,14 +1087,15 @@ class SkinModel:
         if jumped and p0rp > 0:
             miss = rp_ohm - v[_V_PRED]
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+            adl = dl if dl >= 0 else 0 - dl
             am = miss if miss >= 0 else 0 - miss
             big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
             step = big
             bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
-            if rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
+            if rft and adl <= _L_MOVED:
                 unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
                 # straddle a second step: review of session 18)
-            if am > (rp_ohm >> 9) and (dl if dl >= 0 else 0 - dl) > 0x800:
+            if am > (rp_ohm >> 9) and adl > _L_MOVED:
                 if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                     v[_V_RFT] = 1
                 elif big:
@@ -1101,16 +1104,17 @@ class SkinModel:
                 fresh = 1
         elif p0rp > 0:
             dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+            adl = dl if dl >= 0 else 0 - dl
             dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
             # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
             # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
             dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
-            if (dr if dr >= 0 else 0 - dr) - (dl if dl >= 0 else 0 - dl) - (dt if dt >= 0 else 0 - dt) > _L_STEP:
+            if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
                 step = 1
-            elif bstep and (dl if dl >= 0 else 0 - dl) > 0x800:
+            elif bstep and adl > _L_MOVED:
                 # the pulse before saw the step and had no answer: the pair is on one skin, refit
                 v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
-            elif rft and (dl if dl >= 0 else 0 - dl) <= 0x800:
+            elif rft and adl <= _L_MOVED:
                 unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
         if step:  # (cleared below when the jump gives an answer)
             v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
