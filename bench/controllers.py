@@ -265,13 +265,51 @@ def selftest_correction(board, load_ohm=10000, pulses=8):
 FIT_INFO = {}  # the last run's skin fit (trusted, shape sd, ...), for the report
 
 
+class Supervisor:
+    """The firmware's raise rule (firmware/stim.py, Stimulator._control): a proposal that
+    lowers the charge I x T (or keeps it) is sent at once; one that raises it is held one
+    pulse (the pulse before is sent again), then the smaller of the two proposals in a row
+    is sent. The controller is told the pulse sent (Controller.delivered) before each update,
+    as the firmware does."""
+
+    def __init__(self, i_ua, t_us):
+        self.i_ua, self.t_us = i_ua, t_us  # the pulse to send next
+        self.held = False
+        self.p_i, self.p_t = 0, 0  # the held proposal
+
+    def propose(self, i_ua, t_us):
+        """The controller's next pulse (0, 0: stopped); sets the pulse to send."""
+        if i_ua == 0:
+            self.i_ua, self.t_us, self.held = 0, 0, False
+            return
+        q = i_ua * t_us
+        if q <= self.i_ua * self.t_us:
+            self.held = False
+        elif self.held:
+            if self.p_i * self.p_t < q:
+                i_ua, t_us = self.p_i, self.p_t
+            self.held = False
+        else:
+            self.held = True
+            self.p_i, self.p_t = i_ua, t_us
+            return
+        self.i_ua, self.t_us = i_ua, t_us
+
+
+SUPERVISOR = False  # --supervisor: bench.run's default for `supervisor`
+
+
 def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board="exact", sweeps=1,
-        electrode=None, correction=None, adc_us=None):
+        electrode=None, correction=None, adc_us=None, supervisor=None):
     """board: "exact" (the model's end-of-pulse Rp, rounded, times 1 + noise x N(0, 1)), or
     "real"/"ideal": read through the simulated board (Meter); then mQ in the rows is the
     true one (true current and Rp: what is felt), the controller sees the measured Rp.
     sweeps > 1: MODE_FAST's model is fitted to that many repeated wide sweeps
-    (skin.fit_sweeps) and sent only when trusted; otherwise one sweep, always sent."""
+    (skin.fit_sweeps) and sent only when trusted; otherwise one sweep, always sent.
+    supervisor (None: SUPERVISOR): the firmware's raise rule between the controller and the
+    board (Supervisor); rows then hold the pulses sent."""
+    if supervisor is None:
+        supervisor = SUPERVISOR
     rng = np.random.default_rng(seed)
     e = electrode() if electrode else Electrode()
     e.h = h_start
@@ -305,6 +343,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             c.set_skin(*skin.fit(pulses).args())
             FIT_INFO.update(trusted=True)
     h_target, tau = e.h, 0.0
+    sup = Supervisor(c.i_ua, c.t_us) if supervisor else None
     rows = []
     measured = []  # with a board: the rows as the controller sees them (delivered I, measured Rp and mQ)
     true_rp = []  # ... and the electrode's true end-of-pulse Rp of each pulse (ohm; --surges)
@@ -320,7 +359,12 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
                     e.h = h_target
         if tau > 0:
             e.h += (h_target - e.h) * (1 - math.exp(-1 / tau))
-        i, t = c.i_ua, c.t_us
+        if sup:
+            i, t = sup.i_ua, sup.t_us
+            if i:
+                c.delivered(i, t)  # the pulse sent (a held raise is not the controller's own output)
+        else:
+            i, t = c.i_ua, c.t_us
         if i == 0:
             rows.append((k, 0, 0, 0, float("nan"), c.status))
             measured.append((k, 0, 0, 0, float("nan"), c.status))
@@ -336,6 +380,8 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             c.update(rp)
             if mode == ORACLE and c.i_ua > 0:
                 oracle_pulse(c, e, i * t)
+            if sup:
+                sup.propose(c.i_ua, c.t_us)
             continue
         rp_k = e.rp_kohm(i, t) * 1000
         if not math.isfinite(rp_k) or rp_k > 1e9:
@@ -347,6 +393,8 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
         c.update(rp)
         if mode == ORACLE and c.i_ua > 0:
             oracle_pulse(c, e, i * t)
+        if sup:
+            sup.propose(c.i_ua, c.t_us)
     if target_true is not None:
         FIT_INFO["measured"] = (np.array(measured, dtype=float).reshape(-1, 6), c.mq_target_fc_per_ohm)
         FIT_INFO["true_rp"] = true_rp
@@ -466,10 +514,14 @@ def main():
                     help="only the study on N unseen electrodes (steps; 1 %% settling, surges)")
     ap.add_argument("--seed", type=int, default=7, help="study: the electrodes' seed (7: the primary set; 11-20: validation)")
     ap.add_argument("--surges", action="store_true", help="study: one line per step surging > 5 %% (why)")
+    ap.add_argument("--supervisor", action="store_true",
+                    help="the firmware's raise rule between controller and board: a raise held one pulse, "
+                         "then the smaller of two proposals (firmware/stim.py; default: the controller's own pulses)")
     a = ap.parse_args()
-    global PEAK, SURGES
+    global PEAK, SURGES, SUPERVISOR
     PEAK = a.peak
     SURGES = a.surges
+    SUPERVISOR = a.supervisor
     if a.study:
         print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise, a.seed)
         return
@@ -644,6 +696,7 @@ def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0, seed=7):
     print(f"\n{n} unseen electrodes (seed {seed}) x 4 steps on the {board} board"
           f"{' with the self-test correction' if correct else ''}"
           f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{f', peak: {PEAK}' if PEAK != 'firmware' else ''}"
+          f"{', through the firmware supervisor' if SUPERVISOR else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "
           f"({skipped} left out); averaged fit trusted on {sum(trust)} of {len(trust)} electrodes "
           f"({sweeps} sweeps of {len(skin.sweep_wide(1000, 1000))} pulses)")

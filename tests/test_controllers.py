@@ -169,3 +169,33 @@ def test_on_the_realistic_board_no_step_surges_after_the_first_correction():
     for name, bound in (("fast, averaged sweeps + trust", 0.05), ("fast, 1 sweep (sent as is)", 0.10),
                         ("fast, no model", 0.05)):
         assert max(res[name]["rise1"]) <= bound, (name, max(res[name]["rise1"]))
+
+
+def test_bench_supervisor_is_the_firmwares_raise_rule():
+    """bench.Supervisor as firmware/stim.py's _control: a lower charge at once, a raise held
+    one pulse, then the smaller of the two proposals in a row; a stop at once."""
+    s = bench.Supervisor(1000, 1000)
+    seq = [((900, 1000), (900, 1000)),  # lower: sent at once
+           ((1200, 1000), (900, 1000)),  # raise: held, the pulse before again
+           ((1100, 1000), (1100, 1000)),  # second raise in a row: the smaller of the two
+           ((1000, 1300), (1100, 1000)),  # raise: held
+           ((1000, 1000), (1000, 1000)),  # a lower one ends the hold
+           ((1000, 1200), (1000, 1000)),  # held
+           ((1500, 1000), (1000, 1200)),  # the held one is the smaller
+           ((0, 0), (0, 0))]  # stopped
+    for prop, sent in seq:
+        s.propose(*prop)
+        assert (s.i_ua, s.t_us) == sent, (prop, sent)
+
+
+def test_bench_run_through_the_supervisor_raises_only_after_a_held_pulse():
+    """With supervisor=True every raise of the charge follows a pulse repeated (held); the
+    controller alone raises without (so the check can fail)."""
+    ev, n = bench.scenario_events("gel-step")
+    for sup in (True, False):
+        rows, _, _ = bench.run(sc.MODE_FAST, ev, n, supervisor=sup)
+        q = rows[:, 1] * rows[:, 2]
+        raises = [k for k in range(2, len(rows)) if q[k] > q[k - 1] > 0]
+        unheld = [k for k in raises if (rows[k - 1, 1], rows[k - 1, 2]) != (rows[k - 2, 1], rows[k - 2, 2])]
+        assert raises
+        assert (not unheld) if sup else unheld, (sup, unheld[:5])
