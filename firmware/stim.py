@@ -59,6 +59,9 @@ _C_STOP_OFF = const(3)
 _C_STOP_RP_FAULT = const(4)
 _C_VP_LIMIT_MV = const(1000000)
 _C_RP_OVER = const(1073741823)
+_C_K_MODE = const(0)  # (sensation_core._K_MODE: ctl.mode as a word; checked below)
+_C_K_ME = const(32)
+_C_K_MQT = const(33)
 _C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_core._K_I, _K_T, _K_ST:
 _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
 _C_K_ST = const(24)
@@ -82,8 +85,12 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 _c = sc.Controller(1, 2, 1, 2, 4)  # the controller's words as _control and the report read them
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
-if (_c._k[_C_K_I], _c._k[_C_K_T], _c._k[_C_K_ST], _c._k[_C_K_MQL]) != (11, 12, 13, _C_W_BIAS - 14):
-    raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_W_BIAS")
+_c.me_ua2ms, _c.mq_target_fc_per_ohm = 15, 16
+_c.set_mode(sc.MODE_FAST)
+if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE)] != [
+        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST]:
+    raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, "
+                      "_C_K_MODE, _C_W_BIAS")
 del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
@@ -165,7 +172,12 @@ _VK = const(20)  # the monitor correction as vmon_cal.terms() for _measure (0: n
 _VO = const(21)
 _W = const(22)  # samples in the capture window (len(c.adc))
 _UV = const(23)  # uV per ADC count (the Stimulator's uv_per_count)
-_NV = const(24)
+_HI = const(24)  # the Stimulator's hard_i, hard_t, hard_q, vp_off_mv (fixed at set-up): _pulse's and
+_HT = const(25)  # _control's checks read them as words (an attribute of the Stimulator is ~2 us each)
+_HQ = const(26)
+_OFF = const(27)
+_OVL = const(28)  # 1: the board delivers pulses by itself (the Stimulator's _overlap, fixed at set-up)
+_NV = const(29)
 
 
 def _vmon_product_max(uv):
@@ -293,6 +305,10 @@ class Stimulator:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
             c.v[_W] = len(c.adc)
             c.v[_UV] = self.uv_per_count
+            c.v[_HI] = self.hard_i
+            c.v[_HT] = self.hard_t
+            c.v[_HQ] = self.hard_q
+            c.v[_OFF] = self.vp_off_mv
         # the monitor correction the board read from its flash at boot (vmon_cal.boot_load)
         vm = getattr(board, "vmon_cal", None)
         self.vmon_state = getattr(board, "vmon_state", hp.VMON_NONE)
@@ -349,6 +365,8 @@ class Stimulator:
         # rp2's are checked on the emulated chip). Otherwise (the simulated board)
         # fire() delivers the whole pulse before it returns, outside the section.
         self._overlap = hasattr(board, "start") and hasattr(board, "wait")
+        for c in self.chans:
+            c.v[_OVL] = 1 if self._overlap else 0  # (_pulse reads it as a word)
         self._start = board.start if self._overlap else None  # bound once: calls allocate nothing
         self._wait = board.wait if self._overlap else None
         # Bound once, here: on the chip a method looked up on an instance costs ~15 us more than
@@ -405,33 +423,36 @@ class Stimulator:
             if frames > 0:
                 frames -= 1
 
-    @micropython.native
+    @micropython.viper
     def frame(self, now):
         """One frame. Every channel in turn: its pulse (hard limits checked right
         before the gate opens), then measure -> supervise -> control -> output ->
         report (_measure, _control: the supervisor's rules first, _output,
         _encode_telemetry). On a board that delivers pulses by itself (the rp2: PIO
         gate, ADC -> DMA capture) channel k's pulse runs while the CPU does channel
-        k-1's work. Then the reports go out and the host's commands are served."""
+        k-1's work. Then the reports go out and the host's commands are served.
+        (Viper: the loop's counters and flags are machine words, not a runtime call
+        an operation as in native code; every value a small int: ticks < 2**30 on the
+        rp2, keepalive_ms * 1000 < 2**24.)"""
         board = self.board
-        self.frame_t = now & 0x3FFFFFFF
+        self.frame_t = int(now) & 0x3FFFFFFF
         board.feed_watchdog()
         irq_off = self._irq_off  # one heap-locked section for the pulses and their control (_enter, inlined)
-        if irq_off is not None:
+        if irq_off:  # (None or a bound method: viper cannot compare with None)
             self._irq = irq_off()
         _lock()
         self.locked = 1
-        ka = self.keepalive_ms
-        if ka and self._ticks_diff(now, self.last_host) > ka * 1000:  # before any pulse: none fires
+        ka = int(self.keepalive_ms)
+        if ka and int(self._ticks_diff(now, self.last_host)) > ka * 1000:  # before any pulse: none fires
             self._check_keepalive()  # once the host is overdue
         chans = self.chans
-        overlap = self._overlap
-        n = self.n
+        overlap = int(self._overlap)
+        n = int(self.n)
         k = 0
         while k <= n:  # channel k's pulse, and meanwhile channel k - 1's work
             ns = 0
             if k < n:
-                ns = self._f_pulse(k, chans[k])  # on the rp2 the gate is open when this returns (self._pulse)
+                ns = int(self._f_pulse(k, chans[k]))  # on the rp2 the gate is open when this returns (self._pulse)
             if k > 0:  # channel k - 1's work after its pulse, in the order of the paper's Fig. 3 loop
                 c = chans[k - 1]  # (inline here, not a method: a call is ~10 us on the chip)
                 self._f_measure(c)  # self._measure
@@ -449,7 +470,7 @@ class Stimulator:
         self.locked = 0  # _leave, inlined
         _unlock()
         irq_on = self._irq_on
-        if irq_on is not None:
+        if irq_on:
             irq_on(self._irq)
         tel = self.tel
         k = 0
@@ -459,7 +480,7 @@ class Stimulator:
             k += 1
         if self._recv(self.rx):  # a command waits (most frames: none); board.recv
             self._serve_commands(now)
-        self.frames = (self.frames + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
+        self.frames = (int(self.frames) + 1) & 0x3FFFFFFF  # counters stay small ints (no long int on the rp2)
 
     @micropython.viper
     def _pulse(self, k: int, c) -> int:
@@ -480,7 +501,7 @@ class Stimulator:
         v[_DT] = 0
         if v[_ARMED] == 0 or i <= 0:
             return 0
-        if i > int(self.hard_i) or t > int(self.hard_t) or t < _C_T_FLOOR_US or i * t > int(self.hard_q):
+        if i > v[_HI] or t > v[_HT] or t < _C_T_FLOOR_US or i * t > v[_HQ]:
             self._latch(c, _C_STOP_LIMIT)
             return 0
         if v[_AI] != i or ad <= 0:  # the output was not set for this pulse (or sets no current): no pulse
@@ -490,7 +511,7 @@ class Stimulator:
             return 0
         v[_DI] = ad
         v[_DT] = t
-        if self._overlap:
+        if v[_OVL]:  # (self._overlap)
             v[_NS] = int(self._start(k, t))
         else:  # the simulated board allocates: its calls run outside the heap-locked section
             self._leave()
@@ -596,7 +617,7 @@ class Stimulator:
         if v[_DI] == 0:
             return
         rp = v[_RP]
-        off = int(self.vp_off_mv)
+        off = v[_OFF]  # (self.vp_off_mv)
         # off: the corrected or the raw reading at compliance (a wrong stored gain > 1 must not hide it)
         if v[_VP] >= off or v[_VPR] >= off or rp > _C_RP_MAX_OHM:
             self._latch(c, _C_STOP_OFF)
@@ -703,16 +724,16 @@ class Stimulator:
         if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
         seq = int(self.seq)
+        k = ptr32(ctl._k)  # ctl.mode, .mq_last_fc_per_ohm (+ bias), .status, .i_ua, .t_us: its words
         # REP_TELEMETRY, O_CH, O_MODE, O_STOP
-        p32[0] = 0x01 | (cv[_CH] << 8) | (int(ctl.mode) << 16) | (cv[_STOP] << 24)
+        p32[0] = 0x01 | (cv[_CH] << 8) | (k[_C_K_MODE] << 16) | (cv[_STOP] << 24)
         p32[1] = seq  # O_SEQ 4
         p32[2] = int(self.frame_t)  # O_TIME 8
         p32[3] = (di & 0xFFFF) | ((cv[_DT] & 0xFFFF) << 16)  # O_I 12, O_T 14
         p32[4] = cv[_VP]  # O_VP 16
         p32[5] = cv[_RP]  # O_RP 20
-        p32[6] = int(ctl.me_ua2ms)  # O_ME 24
-        p32[7] = int(ctl.mq_target_fc_per_ohm)  # O_MQT 28
-        k = ptr32(ctl._k)  # ctl.mq_last_fc_per_ohm (+ bias), .status, .i_ua, .t_us: its words
+        p32[6] = k[_C_K_ME]  # O_ME 24 (ctl.me_ua2ms)
+        p32[7] = k[_C_K_MQT]  # O_MQT 28 (ctl.mq_target_fc_per_ohm)
         p32[8] = (k[_C_K_MQL] - _C_W_BIAS) if di else 0  # O_MQL 32
         p32[9] = (k[_C_K_ST] & 0xFFFF) | ((k[_C_K_I] & 0xFFFF) << 16)  # O_STATUS 36, O_NEXT_I 38
         v = int(self.overruns)  # hp.sat16 (run() changes both between frames: the same in every

@@ -107,7 +107,8 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     corrected when it enters the ceiling from a higher current. line(c, rp) is Eq. 3,
     from_q(c, qf) Eq. 4 with the bounds. Returns the status. (viper: machine integers,
     every value below 2**30; what the calls return is read with int().)"""
-    kb = ptr32(c._k)  # c.i_ua, c.t_us, c.status and c.before's words
+    ka = c._k  # (looked up once: the model's jump and ceiling_bound take it too)
+    kb = ptr32(ka)  # c.i_ua, c.t_us, c.status and c.before's words
     i_k = kb[_K_I]  # the measured pulse (from_q reads it: restored for a retry)
     t_k = kb[_K_T]
     s_k = kb[_K_ST]
@@ -148,7 +149,7 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     dq = qf - (q_k << 4)  # 1/16 pC
     if (dq if dq >= 0 else 0 - dq) >= (i_k + (0 if ceiling else t_k)) << 3:
         if vm[_V_ON] != 0 and q_k > 0:
-            st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, c._k, from_q))  # (c._k: c.before's words)
+            st = int(model.jump(qf, q_k, rp_at, i_k, t_k, jumped, ka, from_q))  # (c._k: c.before's words)
             if st >= 0:
                 return st
             kb[_K_I] = i_k  # the measured pulse back (three stores: cheaper than a call)
@@ -199,7 +200,7 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
         # step, not the paper's step (that passed the fixed point: up to +38 % felt, an untrusted
         # model; the I_k floor: review of session 18)
         lq = qf >> 4
-        q_new = int(ceiling_bound(c._k, q_k, rp_ohm, lq, i_k))
+        q_new = int(ceiling_bound(ka, q_k, rp_ohm, lq, i_k))
         if q_new > lq:  # (only by the I_k floor)
             q_new = lq
         kb[_K_I] = i_k

@@ -119,7 +119,9 @@ _K_FJ = const(28)  # fast_jumps, model_jumps, model_cuts
 _K_MJ = const(29)
 _K_MC = const(30)
 _K_RPF = const(31)
-_K_N = const(32)
+_K_ME = const(32)  # me_ua2ms (mE in uA^2 ms: uA^2 us / 1000, floored), mq_target_fc_per_ohm (mQ in fC/ohm)
+_K_MQT = const(33)
+_K_N = const(34)
 _W_BIAS = const(0x20000000)
 _RP_LO = RP_MIN_OHM  # as an object
 
@@ -255,6 +257,7 @@ class Controller:
     """
 
     i_ua, t_us, status = word(_K_I), word(_K_T), word(_K_ST)  # the next pulse (the one measured, in update)
+    mode, me_ua2ms, mq_target_fc_per_ohm = word(_K_MODE), word(_K_ME), word(_K_MQT)  # (set_mode, calibrate)
     mq_last_fc_per_ohm, drift_ohm = word(_K_MQL, _W_BIAS), word(_K_DR, _W_BIAS)  # (see _K_I)
     fast_jumps, model_jumps, model_cuts = word(_K_FJ), word(_K_MJ), word(_K_MC)
     rp_ohm = property(lambda c: c._rp_big if c._k[_K_RPF] else c._k[_K_RPG], lambda c, x: c._rp(x))
@@ -271,8 +274,7 @@ class Controller:
         self._k = self.v = array("i", bytes(4 * _K_N))  # the law, the limits, the next pulse: viper reads them
         self.before = Pulse(self._k)  # MODE_FAST: the pulse measured before the one just measured
         self.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc)
-        self._k[_K_MODE] = self.mode = MODE_AKHTAR
-        self.me_ua2ms = self.mq_target_fc_per_ohm = 0  # mE in uA^2*ms (uA^2*us / 1000, floored), mQ in fC/ohm
+        self.mode = MODE_AKHTAR
         self.i0_ua = self.t0_us = self.rp0_ohm = self.x_star_ohm = self.y_star_pc = 0  # calibrate() sets them
         self._mq_num_pc, self._mq_den_ohm = 0, 1  # Eq. 2: mQ = _mq_num_pc / _mq_den_ohm = (Q0 - y*) / (Rp0 - x*)
         self._y_q4 = self._q_max_q4 = self._line_cap_q4 = 0  # y*, q_max, q_max - y* (Eq. 3 saturates) in 1/16 pC
@@ -298,8 +300,7 @@ class Controller:
         k[_K_QMAX] = self.q_max_pc = q_max_pc
         self.skin.limits(i_min_ua, i_max_ua, t_max_us, q_max_pc)
         self.calibrated = False
-        self.i_ua = 0
-        self.t_us = 0
+        self.i_ua = self.t_us = 0
         self.status = ST_UNCALIBRATED
 
     def calibrate(self, i0_ua, t0_us, rp0_ohm, x_star_ohm, y_star_pc):
@@ -359,7 +360,7 @@ class Controller:
             raise ValueError("mode=%d out of range [%d, %d]" % (mode, MODE_OPEN_LOOP, MODE_FAST))
         if mode != self.mode:
             self._forget()
-        self._k[_K_MODE] = self.mode = mode
+        self.mode = mode
 
     def set_skin(self, rs_ohm, beta_q16, cp_pf):
         """MODE_FAST's electrode model (skin_model.py): series resistance Rs (ohm),
@@ -387,8 +388,7 @@ class Controller:
     def stop(self, status):
         """Next pulse: none (i_ua = t_us = 0), with the given fault status."""
         self._forget()
-        self.i_ua = 0
-        self.t_us = 0
+        self.i_ua = self.t_us = 0
         self.status = status
         return status
 

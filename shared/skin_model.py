@@ -762,6 +762,7 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
     v = ptr32(vv)
     if lq_k >= hi:  # (the pulse at or past the search's upper end: no rise to search)
         return NOROOT
+    root = _root  # (one global lookup a call, not one a search)
     x0 = lq_k
     x = lq_k
     while True:
@@ -769,7 +770,7 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
             v[_V_CUT] = 1
             return NOROOT
         v[_V_WORK] += 1
-        gx = int(_root(vv, _K_LAW, x, x - 1, 0))
+        gx = int(root(vv, _K_LAW, x, x - 1, 0))
         if gx == NOROOT:
             return NOROOT
         if gx == 0 and x != lq_k:
@@ -778,7 +779,7 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
             if x == lq_k:  # (no rise asked for)
                 return NOROOT
             v[_V_FB] = gx + _V_BIAS  # [x0, x]: g(x0) > 0 >= g(x), g(x) known
-            return int(_root(vv, _K_LAW + _FB_KNOWN, x0, x, 0))
+            return int(root(vv, _K_LAW + _FB_KNOWN, x0, x, 0))
         x0 = x
         x = x0 + 0x8000
         if x > hi:
@@ -794,6 +795,7 @@ def _law_q(vv, lq_k: int) -> int:
     4 Q_k, from Q_k on), else on the line at t_max; NOROOT if none. Machine code with
     the values in vv: no attribute lookup (fixmath.exp2q inline)."""
     v = ptr32(vv)
+    root = _root  # (one global lookup a call, not one a search)
     lq_max = v[_V_LQMAX]
     ltmax = v[_V_LTMAX]
     hi = lq_k + 0x20000
@@ -802,7 +804,7 @@ def _law_q(vv, lq_k: int) -> int:
     lq_t = (v[_V_LME] + ltmax) >> 1  # the mE curve's charge at t_max
     if hi >= lq_t:
         hi = lq_t
-        fb = int(_root(vv, _K_LAW, hi, hi - 1, 0))
+        fb = int(root(vv, _K_LAW, hi, hi - 1, 0))
         if fb > 0:  # more than the curve gives at t_max
             lo = v[_V_LIMIN]
             hi = lq_max - ltmax
@@ -820,11 +822,11 @@ def _law_q(vv, lq_k: int) -> int:
             if fb > 32 and xa + fb < hi and lo < xa + fb:  # (fb > 32: g(xa) is fb to 23/2**16, the pulse's rounding)
                 if xa >= lo:
                     v[_V_FB] = fb + _V_BIAS
-                    x = int(_root(vv, _K_CEIL + _FA_KNOWN, xa, xa + fb, 0))
+                    x = int(root(vv, _K_CEIL + _FA_KNOWN, xa, xa + fb, 0))
                 else:  # (the curve meets t_max below i_min: from i_min)
-                    x = int(_root(vv, _K_CEIL, lo, xa + fb, 0))
+                    x = int(root(vv, _K_CEIL, lo, xa + fb, 0))
             if x == NOROOT and v[_V_CUT] == 0:
-                x = int(_root(vv, _K_CEIL, lo, hi, 0))
+                x = int(root(vv, _K_CEIL, lo, hi, 0))
             if x == NOROOT:
                 return NOROOT
             n = x + ltmax + 0x40000  # log2 of I t_max in 1/16 pC
@@ -833,14 +835,14 @@ def _law_q(vv, lq_k: int) -> int:
             if fb != NOROOT:  # g at hi is fb: the search does not evaluate it again
                 v[_V_FB] = fb + _V_BIAS
                 kind = _K_LAW + _FB_KNOWN
-            n = int(_root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
+            n = int(root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT and v[_V_CUT] == 0:
                 n = int(_law_near(vv, lq_k, hi))
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
     else:
-        n = int(_root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
+        n = int(root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
         if n == NOROOT and v[_V_CUT] == 0:
             n = int(_law_near(vv, lq_k, hi))
         if n == NOROOT:
@@ -875,6 +877,7 @@ class SkinModel:
         self.rs_ohm = 0  # fitted: series resistance Rs
         self.beta_q16 = 0  # fitted: current exponent beta, Q.16
         self.lc_set = 0  # fitted: log2 Cp (pF) as set
+        self.jump = self.jump  # MODE_FAST's call, bound once (found on the instance, not after a miss in its map)
 
     # words of self.v as attributes (the viper code reads and writes the words)
     on = word(_V_ON)  # 1: a model is set
@@ -985,6 +988,7 @@ class SkinModel:
         vv = self.v
         v = ptr32(vv)
         pk = ptr32(prev)
+        root = _root  # (one global lookup a jump, not one a search)
         p0rp = pk[_KB_RP]
         bhit = 0  # the pulse before is the last jump's pulse: its anchor, if any, is known
         # the last jump saw a step of the skin on the pulse before and gave no answer: both pulses
@@ -1122,7 +1126,7 @@ class SkinModel:
             v[_V_SNA_T] = t_k
         lc = v[_V_LC] - _V_BIAS  # (self.lc)
         w0 = v[_V_WORK]
-        ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
+        ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
         if ls == NOROOT:
             return -2 if v[_V_CUT] else -1
         v[_V_LS] = ls + _V_BIAS  # (self.ls)
@@ -1140,7 +1144,7 @@ class SkinModel:
             v[_V_LC] = lc + _V_BIAS  # (self.lc)
             v[_V_ACH_OK] = 0
             w0 = v[_V_WORK]
-            ls = int(_root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
+            ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
             if ls == NOROOT:
                 return -2 if v[_V_CUT] else -1
             v[_V_LS] = ls + _V_BIAS  # (self.ls)
@@ -1160,10 +1164,10 @@ class SkinModel:
                 ls0 = bls - _V_BIAS
                 v[_V_WORK] += bw
             else:
-                ls0 = int(_root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
+                ls0 = int(root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
             if ls0 != NOROOT:
                 v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
-                la = int(_root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
+                la = int(root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
                 if la != NOROOT:
                     ls1 = ls
                     lc1 = lc
@@ -1213,7 +1217,7 @@ class SkinModel:
                 st = int(from_q(c, q16))
         v[_V_PROBE + _P_LI] = pk[_KC_I]  # the pulse sent (c.i_ua, c.t_us): the model's prediction of its Rp
         v[_V_PROBE + _P_LT] = pk[_KC_T]
-        rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
+        rp = int(root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         if (q16 > base and (fresh or bigm) and unchk != 2 and (st & _ST_T_MAX) != 0 and (s_k & _ST_T_MAX) == 0
                 and rp - rp_ohm > (rp_ohm >> FAST_MODEL_RP_RISE_LOG2)):
             # a fresh rise (the model not yet checked on this skin: the pulse just measured
@@ -1226,7 +1230,7 @@ class SkinModel:
             st = int(from_q(c, q16))
             v[_V_PROBE + _P_LI] = pk[_KC_I]
             v[_V_PROBE + _P_LT] = pk[_KC_T]
-            rp = int(_root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
+            rp = int(root(vv, _K_RP + (_V_PROBE << 8) + _RAW_IT, ls, ls - 1, lc))
         v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
         v[_V_JUMPED] = 1
         v[_V_SNA] = 0
