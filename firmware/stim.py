@@ -261,6 +261,8 @@ class Stimulator:
         simulations whose host is the script itself; no command can set 0."""
         self.board = board
         self.clock = clock
+        # the board's hard limits and electrode-off level: fixed for the Stimulator's life (the
+        # frame's checks read their copies in every channel's words _HI, _HT, _HQ, _OFF, set below)
         self.hard_i = cfg.HARD_I_MAX_UA
         self.hard_t = cfg.HARD_T_MAX_US
         self.hard_q = cfg.HARD_Q_MAX_PC
