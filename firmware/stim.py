@@ -67,10 +67,11 @@ _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; c
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
 _C_W_BIAS = const(0x20000000)
+_C_MODE_CE = const(2)  # sc.MODE_CONSTANT_ENERGY: its T grows with Rp0 (the calibration takes the smaller reading)
 if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US
         or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
-        or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT):
+        or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT or sc.MODE_CONSTANT_ENERGY != _C_MODE_CE):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
 # The telemetry layout (bytes 0..O_RATE; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
@@ -177,7 +178,9 @@ _HT = const(25)  # _control's checks read them as words (an attribute of the Sti
 _HQ = const(26)
 _OFF = const(27)
 _OVL = const(28)  # 1: the board delivers pulses by itself (the Stimulator's _overlap, fixed at set-up)
-_NV = const(29)
+_CR = const(29)  # the last calibration pulse's Rp, not yet confirmed (0: none)
+_CN = const(30)  # calibration pulses since arming
+_NV = const(31)
 
 
 def _vmon_product_max(uv):
@@ -631,9 +634,21 @@ class Stimulator:
             return
         ctl = c.ctl
         k = ptr32(ctl._k)  # the controller's words (the same array before and after calibrate, update)
-        if v[_CALIB]:  # the first pulse after arming gives Rp0 (validated at CALIBRATE)
-            ctl.calibrate(c.i0, c.t0, rp, c.x, c.y)
+        if v[_CALIB]:  # calibration pulses (validated at CALIBRATE) until two in a row agree: Rp0
+            rp0 = int(hp.cal_rp0(v[_CR], rp, k[_C_K_MODE] == _C_MODE_CE))  # (docs/safety.md: no single reading sets it)
+            if rp0 == 0:
+                v[_CR] = rp  # the calibration pulse again: I0, T0 (v[_I], v[_T] as set at ARM)
+                k[_C_K_I] = v[_I]  # (ctl.i_ua, ctl.t_us: telemetry's next pulse)
+                k[_C_K_T] = v[_T]
+                n = v[_CN] + 1
+                v[_CN] = n
+                if n >= int(hp.CAL_TRIES):  # readings that never settle: no Rp0 to trust
+                    self._latch(c, _C_STOP_RP_FAULT)
+                    ctl.stop(sc.ST_UNCALIBRATED)
+                return
+            ctl.calibrate(c.i0, c.t0, rp0, c.x, c.y)
             v[_CALIB] = 0
+            v[_CR] = 0
         else:
             k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us): a held proposal was not what was measured
             k[_C_K_T] = v[_DT]
@@ -889,6 +904,8 @@ class Stimulator:
                     c.ctl.set_mode(self.mode)
                     c.armed = True
                     c.calibrating = True
+                    c.v[_CR] = 0  # (no reading of this arming's calibration pulse yet)
+                    c.v[_CN] = 0
                     c.held = False
                     c.stop = hp.STOP_NONE
                     c.i = c.i0

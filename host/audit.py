@@ -67,12 +67,15 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
 
 def _replay(rows, ctls, cals) -> AuditResult:
     checked, skipped, bad = 0, 0, []
+    cal_rp = dict.fromkeys(ctls, 0)  # per channel: the last calibration pulse's Rp not yet confirmed
     for n, r in enumerate(rows, start=1):
         ch = r["channel"]
         if r["i_ua"] == 0 or ch not in ctls:
+            if ch in cal_rp:
+                cal_rp[ch] = 0  # (a frame without a pulse: stopped; ARM starts the calibration again)
             continue  # no pulse this frame
         try:
-            done = _step(ctls[ch], r, cals[ch])
+            done = _step(ctls[ch], r, cals[ch], cal_rp, ch)
         except ValueError as e:
             raise ValueError(f"data row {n}: {e}") from None
         if not done:
@@ -87,16 +90,28 @@ def _replay(rows, ctls, cals) -> AuditResult:
     return AuditResult(checked, bad, skipped)
 
 
-def _step(c, r, cal) -> bool:
-    """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet)."""
+def _step(c, r, cal, cal_rp, ch) -> bool:
+    """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet).
+    cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none)."""
     c.set_mode(r["mode"])
-    if r["flags"] & hp.FLAG_CALIBRATING:
+    if r["flags"] & hp.FLAG_CALIBRATING:  # (the device's stim._control: Rp0 once two readings agree)
         i0, t0, x, y = cal
-        if sc.RP_MIN_OHM <= r["rp_ohm"] <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
-            c.calibrate(i0, t0, r["rp_ohm"], x, y)
+        rp = r["rp_ohm"]
+        r1 = cal_rp[ch]  # the calibration pulse before this one, since arming
+        cal_rp[ch] = 0
+        if sc.RP_MIN_OHM <= rp <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
+            rp0 = hp.cal_rp0(r1, rp, r["mode"] == sc.MODE_CONSTANT_ENERGY)
+            if rp0:
+                c.calibrate(i0, t0, rp0, x, y)
+            elif r["stop"] == hp.STOP_RP_FAULT:  # readings that never agreed: latched
+                c.stop(sc.ST_UNCALIBRATED)
+            else:  # the calibration pulse again
+                cal_rp[ch] = rp
+                c.delivered(i0, t0)
         else:
-            c.stop(sc.ST_RP_LOW if r["rp_ohm"] < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
+            c.stop(sc.ST_RP_LOW if rp < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
     elif not c.calibrated:
+        cal_rp[ch] = 0
         return False
     elif r["stop"] == hp.STOP_ELECTRODE_OFF:
         c.stop(sc.ST_RP_HIGH)  # the supervisor's stop: Vp at compliance or Rp above range

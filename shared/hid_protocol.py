@@ -183,7 +183,24 @@ STOP_INTERNAL = const(7)  # firmware error in the frame: latched
 FLAG_ARMED = const(0x01)
 FLAG_HELD = const(0x02)  # a charge increase waits for a confirming measurement
 FLAG_KEEPALIVE = const(0x04)
-FLAG_CALIBRATING = const(0x08)  # this pulse is the calibration pulse (Rp0)
+FLAG_CALIBRATING = const(0x08)  # this pulse is a calibration pulse (at I0, T0: Rp0 once two agree, cal_rp0)
+
+# ---- the calibration pulses after ARM: Rp0 (the device's stim._control, the host's audit) ----
+CAL_AGREE_LOG2 = const(5)  # two readings in a row within 1/32 of the larger agree
+CAL_TRIES = const(16)  # calibration pulses that never agree: the channel is latched STOP_RP_FAULT
+
+
+def cal_rp0(r1_ohm, rp_ohm, smaller=False):
+    """Rp0 from a calibration pulse's reading rp_ohm and the one before it (r1_ohm; 0: none), when
+    the two agree within 1/2**CAL_AGREE_LOG2 of the larger, else 0 (the calibration pulse is sent
+    again): the one whose law asks less charge, so that no single reading raises it: the larger
+    (Eq. 2's mQ target and the pulse-width-linear slope fall with Rp0), or with `smaller` the
+    smaller (MODE_CONSTANT_ENERGY: T = T0 Rp0 / Rp)."""
+    top = rp_ohm if rp_ohm > r1_ohm else r1_ohm
+    low = r1_ohm + rp_ohm - top
+    if r1_ohm <= 0 or top - low > top >> CAL_AGREE_LOG2:
+        return 0
+    return low if smaller else top
 
 # ---- byte offsets ----
 # common to all IN reports

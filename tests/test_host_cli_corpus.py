@@ -187,14 +187,15 @@ def test_audit_names_a_recorded_pulse_past_the_cores_limits(corpus, tmp_path, ca
     """A recording whose pulse is past the core's envelope (a corrupt or edited file): one line
     naming the row, the value and the range, no traceback (review of session 16: the controller's
     words raised OverflowError there)."""
-    row = REC_ROW.format(k=1, t=20000).split(",")
+    row = REC_ROW.format(k=2, t=40000).split(",")
     row[3 if field == "i_ua" else 4] = str(value)
     f = tmp_path / "big.csv"
-    cal = REC_ROW.format(k=0, t=0).replace(",1,0,100\n", ",9,0,100\n")  # flags: armed + the calibration pulse
+    # flags: armed + a calibration pulse, twice (two that agree give Rp0: hid_protocol.cal_rp0)
+    cal = "".join(REC_ROW.format(k=k, t=20000 * k).replace(",1,0,100\n", ",9,0,100\n") for k in (0, 1))
     f.write_text(REC_HEAD + cal + ",".join(row))
     assert main(["audit", str(f)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"big.csv: data row 2: {field}={value} out of range 0.." in err[0], err
+    assert len(err) == 1 and f"big.csv: data row 3: {field}={value} out of range 0.." in err[0], err
 
 
 def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):

@@ -285,7 +285,12 @@ class Chip {
       this.rise.set(k, [t, this.amplitudeUa(k)]);
       if (this.world) this.electrodePulse(k, t, this.rise.get(k)[1]);
       const l = this.loads[k];
-      if (l && l.cycle) l.idx = ((l.idx ?? -1) + 1) % l.cycle.length; // a load that changes every pulse
+      // a load that changes every pulse; `lead`: its first load for that many pulses first (the
+      // firmware's calibration takes two pulses that agree)
+      if (l && l.cycle) {
+        if ((l.lead ?? 0) > 0) { l.lead -= 1; l.idx = 0; }
+        else l.idx = ((l.idx ?? -1) + 1) % l.cycle.length;
+      }
     }
     else if (this.rise.has(k)) {
       const [t0, i] = this.rise.get(k);

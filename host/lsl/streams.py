@@ -176,6 +176,7 @@ class Feed:
         self.s = streams
         self.clock = clock
         self.stop: dict[int, int] = {}
+        self.cal_rp: dict[int, int] = {}  # channel -> its last calibration pulse's Rp, not yet confirmed
         self.pending: dict[int, list] = {}  # tag -> [(command, marker text)] of commands sent, until their ack
         self.samples = True  # False: markers only (a recording that has ended)
 
@@ -189,8 +190,13 @@ class Feed:
         if isinstance(rep, Telemetry):
             if self.samples:
                 self.s.telemetry([getattr(rep, c) for c in COLUMNS], ts)
-            if rep.flags & hp.FLAG_CALIBRATING and rep.rp_ohm > 0:
-                self.s.marker(f"rp0 ch={rep.channel} rp0_ohm={rep.rp_ohm}", ts)
+            r1 = self.cal_rp.pop(rep.channel, 0)
+            if rep.flags & hp.FLAG_CALIBRATING and rep.rp_ohm > 0 and rep.i_ua > 0:
+                rp0 = hp.cal_rp0(r1, rep.rp_ohm, rep.mode == sc.MODE_CONSTANT_ENERGY)  # Rp0 once two agree (as the device)
+                if rp0:
+                    self.s.marker(f"rp0 ch={rep.channel} rp0_ohm={rp0}", ts)
+                else:
+                    self.cal_rp[rep.channel] = rep.rp_ohm
             if rep.stop != self.stop.get(rep.channel) and rep.stop in STOP_REASONS:
                 self.s.marker(f"stop ch={rep.channel} reason={STOP_REASONS[rep.stop]}", ts)
             self.stop[rep.channel] = rep.stop

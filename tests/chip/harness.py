@@ -31,9 +31,10 @@ HERE = Path(__file__).resolve().parent  # tests/chip (conftest: which tests are 
 
 # The frame's set-up on the chip, shared by tests/chip/test_chip_frame.py and bench/chip.py:
 # each channel drives the electrode model LOAD (Rs 500 ohm + Rp 20 kohm || C, tau 450 us), or
-# JUMP (Rp 20 <-> 40 kohm every pulse: a skin model's search each time) with the skin model SKIN.
+# JUMP (Rp 20 <-> 40 kohm every pulse after the two calibration pulses: a skin model's search each
+# time) with the skin model SKIN.
 LOAD = {"rs_ohm": 500, "rp_ohm": 20000, "tau_us": 450, "open": False}
-JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)]}
+JUMP = {"cycle": [LOAD, dict(LOAD, rp_ohm=40000)], "lead": 2}
 SKIN = (500, 36045, 14000)  # rs_ohm, beta_q16 (0.55), cp_pf (as bench/core_step.py)
 
 # On a board made by make_board(): a Stimulator `s` of n channels at rate Hz in `mode`, every

@@ -49,11 +49,12 @@ def check_word(word, ch, code):
 
 
 def test_every_pulse_of_a_run_has_its_code_written_and_settled_before_the_gate_opens(on_board, cfg):
-    # Rp changes every pulse on both channels, so the controller moves the current every frame
+    # Rp changes every pulse on both channels after the two calibration pulses, so the controller
+    # moves the current every frame
     on_board.host.call("load", ch=0, load={"cycle": [{"rs_ohm": 0, "rp_ohm": r, "tau_us": 0}
-                                                 for r in (10000, 14000, 8000, 12000, 9000)]})
+                                                 for r in (10000, 14000, 8000, 12000, 9000)], "lead": 2})
     on_board.host.call("load", ch=1, load={"cycle": [{"rs_ohm": 470, "rp_ohm": r, "tau_us": 0}
-                                                 for r in (4700, 6100, 3900)]})
+                                                 for r in (4700, 6100, 3900)], "lead": 2})
     frames = 12
     rows = on_board.eval_out(RUN.format(n=2, mode=sc.MODE_AKHTAR, i0=1000, t0=1000, frames=frames))
     r = on_board.take()

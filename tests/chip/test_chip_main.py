@@ -50,7 +50,7 @@ def test_main_runs_the_loop_driven_over_hid(chip, cfg):
     # chip, docs/hardware.md); telemetry carries the previous frame's loop_us and the count.
     # No frame after it overruns.
     cal = [t for t in fired if t.flags & hp.FLAG_CALIBRATING]
-    assert len(cal) == 2 and cal[-1] is fired[1]
+    assert len(cal) == 4 and cal[-1] is fired[3]  # two calibration pulses a channel (two that agree: Rp0)
     assert {t.overruns for t in fired[2:]} == {fired[2].overruns} and fired[2].overruns <= 1
     assert all(t.loop_us < 20000 for t in fired[4:])
     last = {t.channel: t for t in fired}

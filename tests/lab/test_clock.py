@@ -120,11 +120,12 @@ def test_markers_from_acks_and_stops_at_the_device_time():
     c = Commands()
     arm, cal = c.arm(), c.calibrate(1000, 1000, -1670, 186000, 0)
     reps = [ack_report(0, 1000, hp.CMD_CALIBRATE, cal[1]), ack_report(1, 2000, hp.CMD_ARM, arm[1]),
-            telemetry_report(2, 30000, flags=hp.FLAG_ARMED | hp.FLAG_CALIBRATING),
-            telemetry_report(3, 50000, stop=hp.STOP_ELECTRODE_OFF, flags=0),
-            telemetry_report(4, 70000, stop=hp.STOP_ELECTRODE_OFF, flags=0),
-            ack_report(5, 80000, hp.CMD_ARM, arm[1] ^ 1),  # an ack of something this host did not send
-            telemetry_report(6, 90000, stop=hp.STOP_KEEPALIVE, flags=0)]
+            telemetry_report(2, 30000, flags=hp.FLAG_ARMED | hp.FLAG_CALIBRATING),  # Rp0 once two agree
+            telemetry_report(3, 40000, flags=hp.FLAG_ARMED | hp.FLAG_CALIBRATING),
+            telemetry_report(4, 50000, stop=hp.STOP_ELECTRODE_OFF, flags=0),
+            telemetry_report(5, 70000, stop=hp.STOP_ELECTRODE_OFF, flags=0),
+            ack_report(6, 80000, hp.CMD_ARM, arm[1] ^ 1),  # an ack of something this host did not send
+            telemetry_report(7, 90000, stop=hp.STOP_KEEPALIVE, flags=0)]
     t = FakeTransport(reps, [5.0 + k * 0.05 for k in range(len(reps))])
     sink = Sink()
     tap = Tap(t, Feed(sink, ClockMap()), lambda: t.now)
@@ -136,9 +137,10 @@ def test_markers_from_acks_and_stops_at_the_device_time():
     assert texts == ["calibrate ch=0 i0_ua=1000 t0_us=1000 x_star_ohm=-1670 y_star_pc=186000", "arm ch=all",
                      "rp0 ch=0 rp0_ohm=29000", "stop ch=0 reason=electrode_off", "stop ch=0 reason=keepalive_lost"]
     assert t.sent == [cal, arm]
-    assert len(sink.samples) == 4 and all(len(s) == len(COLUMNS) for s in sink.samples)
+    assert len(sink.samples) == 5 and all(len(s) == len(COLUMNS) for s in sink.samples)
     m = dict(sink.markers)
-    assert m["stop ch=0 reason=electrode_off"] == pytest.approx(sink.stamps[1])
+    assert m["rp0 ch=0 rp0_ohm=29000"] == pytest.approx(sink.stamps[1])  # at the second calibration pulse
+    assert m["stop ch=0 reason=electrode_off"] == pytest.approx(sink.stamps[2])
     assert m["arm ch=all"] < m["rp0 ch=0 rp0_ohm=29000"] < m["stop ch=0 reason=electrode_off"]
 
 
