@@ -269,26 +269,37 @@ class Supervisor:
     """The firmware's raise rule (firmware/stim.py, Stimulator._control): a proposal that
     lowers the charge I x T (or keeps it) is sent at once; one that raises it is held one
     pulse (the pulse before is sent again), then the smaller of the two proposals in a row
-    is sent. The controller is told the pulse sent (Controller.delivered) before each update,
+    is sent, but within FALL_HOLD pulses of a fall of more than 1/8 not past the pulse before it. The controller is told the pulse sent (Controller.delivered) before each update,
     as the firmware does."""
+
+    FALL_LOG2, FALL_HOLD = 3, 16  # (stim._C_FALL_LOG2, _C_FALL_HOLD)
 
     def __init__(self, i_ua, t_us):
         self.i_ua, self.t_us = i_ua, t_us  # the pulse to send next
         self.held = False
         self.p_i, self.p_t = 0, 0  # the held proposal
+        self.f_i, self.f_t, self.f_n = 0, 0, 0  # the pulse before a large fall, pulses left to hold raises below it
 
     def propose(self, i_ua, t_us):
-        """The controller's next pulse (0, 0: stopped); sets the pulse to send."""
+        """The controller's next pulse (0, 0: stopped); sets the pulse to send. After a fall of
+        more than 1/8 in charge no raise goes past the pulse before it for FALL_HOLD pulses."""
         if i_ua == 0:
-            self.i_ua, self.t_us, self.held = 0, 0, False
+            self.i_ua, self.t_us, self.held, self.f_n = 0, 0, False, 0
             return
         q = i_ua * t_us
-        if q <= self.i_ua * self.t_us:
+        qs = self.i_ua * self.t_us
+        if self.f_n > 0:
+            self.f_n -= 1
+        if q <= qs:
             self.held = False
+            if self.f_n == 0 and q < qs - (qs >> self.FALL_LOG2):
+                self.f_i, self.f_t, self.f_n = self.i_ua, self.t_us, self.FALL_HOLD
         elif self.held:
             if self.p_i * self.p_t < q:
                 i_ua, t_us = self.p_i, self.p_t
             self.held = False
+            if self.f_n > 0 and i_ua * t_us > self.f_i * self.f_t:
+                i_ua, t_us = self.f_i, self.f_t
         else:
             self.held = True
             self.p_i, self.p_t = i_ua, t_us

@@ -400,3 +400,32 @@ def test_calibration_readings_that_never_agree_latch_the_channel():
     assert {(t.i_ua, t.t_us) for t in fired} == {(1000, 1000)}
     assert results[0] == {"stop": hp.STOP_RP_FAULT, "armed": False, "cal": False}
     assert tel[-1].stop == hp.STOP_RP_FAULT and tel[-1].next_i_ua == 0
+
+
+@pytest.mark.parametrize("mode, factor, at, skin", [
+    (sc.MODE_CONSTANT_ENERGY, 3.0, 10, None),  # review of session 22: pulse 13 at 1.73x the clean run's largest
+    (sc.MODE_CONSTANT_ENERGY, 1.6, 10, None),
+    (sc.MODE_FAST, 0.6, 3, (500, 36000, 50000)),  # 1.098x at pulse 8
+    (sc.MODE_AKHTAR, 0.4, 10, None),  # (a low reading makes the fall where the law asks more with Rp)
+    (sc.MODE_PULSE_WIDTH_LINEAR, 0.4, 10, None)])
+def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_it(mode, factor, at, skin):
+    """One wild reading makes a large fall (sent at once); the genuine readings on the short pulse that
+    follows may both ask for more than before, so the two-in-a-row rule alone let the recovery overshoot
+    (review of session 22). After a fall of more than 1/8 no raise goes past the pulse sent before it
+    for stim._C_FALL_HOLD pulses: no pulse of the run carries more than the run without the reading."""
+    reports, _, _ = run_fw(f"""
+        for g in (1.0, {factor!r}):
+            s, board, usb, clock = make("steady", n=1)
+            if {skin!r}:
+                assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, *{skin!r})) == 0
+            start(s, mode={mode})
+            for k in range(60):
+                if k == {at} and g != 1.0:
+                    board.glitch[0] = g
+                s.run(1)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 60:(k + 1) * 60]] for k in (0, 1)]
+    assert min(bad[at + 1:at + 3]) < 0.875 * clean[at]  # the wild reading did make a large fall
+    assert max(bad) <= max(clean) * 1.005, (max(bad), max(clean), bad[at:at + 12])
