@@ -269,7 +269,8 @@ class Supervisor:
     """The firmware's raise rule (firmware/stim.py, Stimulator._control): a proposal that
     lowers the charge I x T (or keeps it) is sent at once; one that raises it is held one
     pulse (the pulse before is sent again), then the smaller of the two proposals in a row
-    is sent, but within FALL_HOLD pulses of a fall of more than 1/8 not past the pulse before it. The controller is told the pulse sent (Controller.delivered) before each update,
+    is sent, but within FALL_HOLD pulses of a fall of more than 1/8 not past the pulse before it
+    until that pulse is sent again. The controller is told the pulse sent (Controller.delivered) before each update,
     as the firmware does."""
 
     FALL_LOG2, FALL_HOLD = 3, 16  # (stim._C_FALL_LOG2, _C_FALL_HOLD)
@@ -282,7 +283,8 @@ class Supervisor:
 
     def propose(self, i_ua, t_us):
         """The controller's next pulse (0, 0: stopped); sets the pulse to send. After a fall of
-        more than 1/8 in charge no raise goes past the pulse before it for FALL_HOLD pulses."""
+        more than 1/8 in charge no raise goes past the pulse before it for FALL_HOLD pulses, or
+        until it is sent again (readings on it are the two-in-a-row rule's to judge)."""
         if i_ua == 0:
             self.i_ua, self.t_us, self.held, self.f_n = 0, 0, False, 0
             return
@@ -290,6 +292,8 @@ class Supervisor:
         qs = self.i_ua * self.t_us
         if self.f_n > 0:
             self.f_n -= 1
+            if (self.i_ua, self.t_us) == (self.f_i, self.f_t):  # back at the pulse before the fall
+                self.f_n = 0
         if q <= qs:
             self.held = False
             if self.f_n == 0 and q < qs - (qs >> self.FALL_LOG2):

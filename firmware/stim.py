@@ -185,7 +185,8 @@ _FT = const(32)
 _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: none)
 _NV = const(34)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before
-# the fall for _C_FALL_HOLD pulses: one wild reading that made the fall cannot make the
+# the fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then
+# the two-in-a-row rule's to judge): one wild reading that made the fall cannot make the
 # recovery overshoot the charge it had (review of session 22: +73 % in constant energy, +10 % in
 # MODE_FAST with a skin model, from one reading; docs/safety.md)
 _C_FALL_LOG2 = const(3)
@@ -671,6 +672,8 @@ class Stimulator:
         fn = v[_FN]
         if fn > 0:
             fn -= 1
+            if v[_I] == v[_FI] and v[_T] == v[_FT]:  # back at the pulse before the fall: the readings on
+                fn = 0  # it are the two-in-a-row rule's to judge
             v[_FN] = fn
         if q <= qs:
             v[_HELD] = 0

@@ -174,7 +174,7 @@ def test_on_the_realistic_board_no_step_surges_after_the_first_correction():
 def test_bench_supervisor_is_the_firmwares_raise_rule():
     """bench.Supervisor as firmware/stim.py's _control: a lower charge at once, a raise held
     one pulse, then the smaller of the two proposals in a row, not past the pulse before a fall
-    of more than 1/8 within 16 pulses of it; a stop at once."""
+    of more than 1/8 within 16 pulses of it until that pulse is sent again; a stop at once."""
     s = bench.Supervisor(1000, 1000)
     seq = [((900, 1000), (900, 1000)),  # lower: sent at once
            ((1200, 1000), (900, 1000)),  # raise: held, the pulse before again
@@ -187,9 +187,9 @@ def test_bench_supervisor_is_the_firmwares_raise_rule():
            ((1100, 1000), (1000, 1000)),  # held (15 left)
            ((1400, 1000), (1100, 1000)),  # the smaller of two, below the pulse before the fall
            ((1300, 1000), (1100, 1000))]  # held (13 left)
-    seq += [((1300, 1000), (1000, 1200)), ((1300, 1000), (1000, 1200))] * 6  # capped at the pulse before
-    # the fall, then held again, in turn (12 ... 1 left)
-    seq += [((1300, 1000), (1300, 1000)),  # past the hold: the smaller of two in a row
+    seq += [((1300, 1000), (1000, 1200)),  # capped: the pulse before the fall (12 left)
+            ((1300, 1000), (1000, 1200)),  # back at it: the hold ends; this raise is held
+            ((1300, 1000), (1300, 1000)),  # the smaller of two in a row, both read on that pulse
             ((0, 0), (0, 0))]  # stopped
     for prop, sent in seq:
         s.propose(*prop)
