@@ -29,7 +29,7 @@ class Mismatch:
 class AuditResult:
     checked: int
     mismatches: list[Mismatch]
-    skipped: int  # pulses before the replay had a calibration
+    skipped: int  # pulses before the replay had a calibration (or on a channel the header does not calibrate)
 
 
 def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
@@ -68,9 +68,12 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
 def _replay(rows, ctls, cals) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     for n, r in enumerate(rows, start=1):
-        ch = r["channel"]
-        if r["i_ua"] == 0 or ch not in ctls:
+        ch = r["channel"]  # one of the recording's channels (read_recording refuses any other)
+        if r["i_ua"] == 0:
             continue  # no pulse this frame
+        if ch not in ctls:  # a channel the header gives no calibration for
+            skipped += 1
+            continue
         try:
             done = _step(ctls[ch], r, cals[ch])
         except ValueError as e:

@@ -91,7 +91,7 @@ def sim_meta(a, cal: Calib, m: str, info: Info | None = None) -> dict:
         "i_min_ua": info.i_min_ua, "i_max_ua": info.i_max_ua, "t_min_us": info.t_min_us, "t_max_us": info.t_max_us,
         "q_max_pc": info.q_max_pc}
     return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
-            "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
+            "n_channels": a.channels, "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
             "y_star_pc": cal.y_star_pc, **lim, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 

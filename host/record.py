@@ -16,6 +16,7 @@ COLUMNS = [
     "mq_target_fc_per_ohm", "mq_last_fc_per_ohm", "next_i_ua", "next_t_us", "flags", "overruns", "loop_us",
 ]
 REQUIRED = ["seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status"]
+MAX_CHANNELS = 4  # the protocol's channels 0..3
 
 
 class RecordingError(ValueError):
@@ -95,6 +96,7 @@ def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, lis
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise RecordingError(f"{path} line {k + 1}: missing column(s) {', '.join(missing)}")
+    channels = recording_channels(meta, path)
     rows = []
     for n, line in enumerate(lines[k + 1 :], start=k + 2):
         if not line.strip():
@@ -112,12 +114,32 @@ def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, lis
                 raise RecordingError(f"{path} line {n}: column {h} = {c[:12]}{'...' if len(c) > 12 else ''} "
                                      "out of range (a 32-bit field)")
             row[h] = int(c)
+        if row["channel"] not in channels:
+            raise RecordingError(f"{path} line {n}: channel {row['channel']} is not one of the recording's channels "
+                                 f"({_words(channels)})")
         rows.append(row)
     if not rows:
         raise RecordingError(f"{path}: no pulses recorded" + (f" (cut at line {cut})" if cut else ""))
     if cut:
         meta[CUT] = cut
     return meta, rows
+
+
+def recording_channels(meta: dict, path="recording") -> range:
+    """The channels a recording has: 0..n_channels-1 from its header (`record` writes it), else the protocol's
+    0..3 (a header without it). A row on another channel is refused: it cannot be replayed or plotted."""
+    if "n_channels" not in meta:
+        return range(MAX_CHANNELS)
+    n = meta_int(meta, "n_channels", path)
+    if not 1 <= n <= MAX_CHANNELS:
+        raise RecordingError(f"{path}: metadata 'n_channels' = {n} out of range [1, {MAX_CHANNELS}]")
+    return range(n)
+
+
+def _words(channels: range) -> str:
+    if len(channels) == 1:
+        return f"it has channel {channels[0]} only"
+    return f"it has channels {channels[0]}..{channels[-1]}"
 
 
 def meta_int(meta: dict, key: str, path="recording") -> int:

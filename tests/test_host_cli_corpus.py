@@ -226,3 +226,28 @@ def test_bad_device_urls_are_one_line(url, words, capsys):
     assert main(["info", "--device", url]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.parametrize("channel", [5, 2])
+def test_audit_and_plot_refuse_a_row_on_a_channel_the_recording_does_not_have(tmp_path, capsys, channel):
+    """A row on a channel the 2-channel recording does not have (an edited or corrupt file) was skipped: a
+    mismatch on it disappeared and audit said bit-exact. Now audit and plot name the line and the channels."""
+    assert main(["sim", "steady", "--mode", "akhtar", "--channels", "2", "--out", str(tmp_path), "--no-plot"]) == 0
+    f = tmp_path / "steady-akhtar.csv"
+    lines = f.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 150
+    cells = lines[k].split(",")
+    cells[13] = str(int(cells[13]) + 1)  # next_i_ua: a mismatch
+    lines[k] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    assert main(["audit", str(f)]) == 1 and "1 MISMATCH" in capsys.readouterr().out
+    cells[2] = str(channel)
+    lines[k] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    for argv in (["audit", str(f)], ["plot", str(f), "--out", str(tmp_path / "x.png")]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"line {k + 1}: channel {channel} is not one of the recording's channels " \
+            "(it has channels 0..1)" in err[0], err
+    assert not (tmp_path / "x.png").exists()
