@@ -19,7 +19,7 @@ import sensation_core as sc
 
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
-from .files import FileProblem, Outputs, dump_json
+from .files import FileProblem, Outputs, dump_json, refuse_existing
 from .protocol import (FW_OWN_LIMITS, STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration,
                        held_reason)
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
@@ -106,6 +106,9 @@ def cmd_sim(a) -> int:
         _within_soft_limits(Device(t).info(), cal.i0_ua, cal.t0_us, "--i0-ua", sim=True)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
+    stem = Path(a.scenario).stem
+    refuse_existing([out / f"{stem}-{m}.csv" for m in modes] + ([] if a.no_plot else [out / f"{stem}.png"]),
+                    a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     with Outputs() as outputs:  # every file appears only when the whole run succeeded
         return _sim(a, keys, duration, cal, modes, out, outputs)
@@ -351,6 +354,7 @@ def cmd_calibrate_interactive(a) -> int:
             raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
+    refuse_existing([out / n for n in ("session.csv", "calibration.json", "session-partial.csv")], a.overwrite)
     levels = {"weak": a.weak_ua, "strong": a.strong_ua}
     prog = Progress("calibrate")
     with open_transport(a.device) as t:
@@ -522,6 +526,7 @@ def cmd_record(a) -> int:
 
     out = Path(a.file)
     _finite("seconds", a.seconds, 0, 1e9)
+    refuse_existing([out], a.overwrite, "choose another file name")
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
     with open_transport(a.device) as t:
@@ -734,6 +739,7 @@ def cmd_plot(a) -> int:
         raise RecordingError(f"no pulses on channel {a.channel} in any of the recordings: nothing to plot")
     out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
     p = out.with_name(out.stem + "-planes.png")
+    refuse_existing([out] + ([p] if a.planes else []), a.overwrite)
     with Outputs() as o:
         fig5(recs, o.path(out), a.channel)
         if a.planes:
@@ -785,9 +791,10 @@ def cmd_flash(a) -> int:
 def cmd_fit(a) -> int:
     from . import fit as F
 
+    out = Path(a.out)
+    refuse_existing([out / "calibration.json", out / "fit.png"], a.overwrite)
     sets = F.load(a.file)
     res = F.fit(sets)
-    out = Path(a.out)
     cal = dict(res.calibration(), source=str(a.file))
     q_min = min(float(s.q_pc.min()) for s in sets)
     if not (sc.X_STAR_MIN_OHM <= cal["x_star_ohm"] <= 0 and 0 <= cal["y_star_pc"] < q_min):
@@ -885,8 +892,9 @@ def cmd_synth(a) -> int:
     _finite("x_star_ohm", a.x_star_ohm, sc.X_STAR_MIN_OHM, 0)
     _finite("y_star_pc", a.y_star_pc, 0, 1e6)
     _finite("rp_noise", a.rp_noise, 0, 0.5)
-    sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
     out = Path(a.out)
+    refuse_existing([out / "exp1.csv", out / "exp2.csv"], a.overwrite)
+    sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
     out.mkdir(parents=True, exist_ok=True)
     with Outputs() as o:
         write_rows(o.path(out / "exp1.csv"), sp.exp1_rows(a.participants))
@@ -915,6 +923,8 @@ def cmd_selftest(a) -> int:
     _finite("load-ohm", a.load_ohm, *st.LOAD_OHM_RANGE)
     if a.pulses < 2 or a.pulses > 100:
         raise st.SelfTestError(f"--pulses {a.pulses} out of range [2, 100]")
+    if a.save_dir is not None:
+        refuse_existing([Path(a.save_dir) / st.CAL_FILE], a.overwrite, "choose another --save-dir")
     url = a.device
     if url.startswith(("sim://", "emu://")) and "load=" not in url:  # the simulated resistor in place of the electrodes
         url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
@@ -930,6 +940,9 @@ def cmd_selftest(a) -> int:
 
 
 # ------------------------------------------------------------ parser
+OVERWRITE_HELP = "replace output files that exist already (default: refuse, naming them)"
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors in one line (and a pointer to --help)."""
 
@@ -952,6 +965,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("sim", cmd_sim, "run the firmware in the MicroPython VM against a simulated electrode",
             "  steadytouch sim peel\n  steadytouch sim gel --mode akhtar --out runs/\n"
+            "  steadytouch sim peel --out runs/ --overwrite   (replace the files of an earlier run)\n"
             "  steadytouch sim my-disturbance.csv   (columns time_s,contact,hydration)", device=False)
     s.add_argument("scenario", nargs="?", default="peel", help="steady, peel, gel, gel-step, exercise, off, or a .csv file")
     s.add_argument("--mode", choices=list(MODES) + ["both"], default="both",
@@ -960,6 +974,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--out", default="out", help="folder for the CSV and PNG files (default: out/)")
     s.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--ideal-board", action="store_true", help="the ideal board instead of the one with the real "
                    "parts' errors (DAC steps, ADC noise and DNL, monitor gain/offset; docs/simulation.md)")
     s.add_argument("--lsl", action="store_true", help="also stream each run on Lab Streaming Layer (docs/lab.md)")
@@ -982,6 +997,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
     s.add_argument("file")
+    s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists (default: refuse)")
     s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated); "
                    "the device is kept alive while recording and disarmed at the end")
@@ -1000,6 +1016,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out")
     s.add_argument("--channel", type=int, default=0)
     s.add_argument("--planes", action="store_true")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("arm", cmd_arm, "stimulate while this runs (the first pulse is I0, T0 and measures Rp0); "
             "Ctrl-C, SIGTERM or --seconds disarms; the device stops by itself if the host goes silent",
@@ -1027,6 +1044,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--present-s", type=float, default=0.5, help="length of each presentation (s)")
     g.add_argument("--send", action="store_true", help="send the fitted calibration without asking")
     g.add_argument("--out", default="out", help="folder for session.csv and calibration.json")
+    g.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     g.add_argument("--seed", type=int, default=1)
 
     s = add("limits", _simple("limits", lambda a: a.i_min_ua, lambda a: a.i_max_ua, lambda a: a.t_min_us,
@@ -1077,6 +1095,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("file")
     s.add_argument("--out", default="out", help="folder for calibration.json and fit.png (default out/)")
     s.add_argument("--json", action="store_true", help="print the results as JSON")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("skin", cmd_skin, "fit MODE_FAST's electrode model (Rs, beta, Cp) to calibration pulses; --send sets it",
             "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm; optional sweep: repeated sweeps, averaged)\n"
@@ -1100,6 +1119,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--x-star-ohm", type=float, default=-1670.0)
     s.add_argument("--y-star-pc", type=float, default=186000.0)
     s.add_argument("--rp-noise", type=float, default=0.01, help="relative Rp measurement noise (default 0.01)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("selftest", cmd_selftest, "first-run self-test on a resistor in place of the electrodes: fits the "
             "monitor's gain and offset, reports linearity and worst error, stores the correction",
@@ -1114,6 +1134,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "1000 us on the load and asks for the plateau a scope reads across it (mV, on stdin)")
     s.add_argument("--save-dir", default=None, help="also keep a copy of vmon_cal.txt in this folder "
                    "(the device stores its own in its flash)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
         "  steadytouch devices", device=False)

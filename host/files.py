@@ -6,6 +6,9 @@
   run leaves no new or half-written file behind, and an old file is kept.
 - `read_text_file` / `csv_rows`: a text CSV or an error naming the file (binary
   data, unreadable, fields longer than the csv module's limit).
+- `refuse_existing`: an output that exists already is replaced only when the user
+  said so (`--overwrite`): a previous session or recording is never lost by a
+  repeated command.
 - `finite`: no NaN or Infinity reaches a JSON file or a table.
 """
 
@@ -56,6 +59,18 @@ class Outputs:
         else:
             self.discard()
         return False
+
+
+def refuse_existing(paths, overwrite: bool, instead: str = "choose another --out") -> None:
+    """FileProblem naming every one of paths that exists already, unless overwrite (the command's --overwrite).
+    Called before the command does its work: nothing is measured or simulated for a file it may not write."""
+    if overwrite:
+        return
+    there = [str(p) for p in paths if os.path.lexists(p)]
+    if there:
+        names = there[0] if len(there) == 1 else ", ".join(there[:-1]) + " and " + there[-1]
+        raise FileProblem(f"{names} already exist{'s' if len(there) == 1 else ''}: --overwrite replaces "
+                          f"{'it' if len(there) == 1 else 'them'} ({instead})")
 
 
 def read_text_file(path: Path | str, what: str = "file") -> str:
