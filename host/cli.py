@@ -55,6 +55,19 @@ def _finite(name, v, lo=-math.inf, hi=math.inf):
     return v
 
 
+def _seconds(a) -> float:
+    """--seconds: a duration in (0, 1e9] s; left out, the command runs until Ctrl-C (0 here, as Progress takes it).
+    An explicit 0 is refused: a stimulator runs for a duration the user gave, or until they stop it, never for
+    'forever' by a number that reads as 'none'."""
+    if a.seconds is None:
+        return 0.0
+    v = a.seconds
+    if not (math.isfinite(v) and 0 < v <= 1e9):
+        raise ValueError(f"--seconds {v:g} out of range: a number of seconds in (0, 1e9]; leave --seconds out to "
+                         "run until Ctrl-C")
+    return v
+
+
 # ---------------------------------------------------------------- sim
 def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]:
     bounds = [k[0] for k in keys] + [duration_s]
@@ -260,7 +273,7 @@ def cmd_arm(a) -> int:
     or every armed channel stopped by the device)."""
     ch = _channel(a)
     _precheck("arm", ch)
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
     from .progress import Progress
 
     prog = Progress("arm", a.seconds)
@@ -525,7 +538,7 @@ def cmd_record(a) -> int:
     from .progress import Progress
 
     out = Path(a.file)
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
     refuse_existing([out], a.overwrite, "choose another file name")
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
@@ -648,7 +661,7 @@ def cmd_monitor(a) -> int:
 
     state = MonitorState()
     tty = sys.stdout.isatty()
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
     live = LivePlot() if a.plot else None
@@ -987,7 +1000,7 @@ def build_parser() -> argparse.ArgumentParser:
             "disarms it on exit",
             "  steadytouch monitor\n  steadytouch monitor --arm --seconds 30\n"
             "  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
-    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--seconds", type=float, help="stop after this long, in (0, 1e9] s (left out: until Ctrl-C)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated)")
     s.add_argument("--plot", action="store_true", help="also a live plot window (matplotlib; needs a display)")
     s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
@@ -998,7 +1011,8 @@ def build_parser() -> argparse.ArgumentParser:
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
     s.add_argument("file")
     s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists (default: refuse)")
-    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
+    s.add_argument("--seconds", type=float, help="stop after this long, in (0, 1e9] s (left out: until Ctrl-C or "
+                   "device loss)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated); "
                    "the device is kept alive while recording and disarmed at the end")
     s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
@@ -1022,7 +1036,7 @@ def build_parser() -> argparse.ArgumentParser:
             "Ctrl-C, SIGTERM or --seconds disarms; the device stops by itself if the host goes silent",
             "  steadytouch arm\n  steadytouch arm --channel 1 --seconds 60")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
-    s.add_argument("--seconds", type=float, default=0, help="disarm after this long (default: until Ctrl-C)")
+    s.add_argument("--seconds", type=float, help="disarm after this long, in (0, 1e9] s (left out: until Ctrl-C)")
     s = add("disarm", _simple("disarm", _channel), "stop stimulating at once",
             "  steadytouch disarm\n  steadytouch disarm --channel 1")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")

@@ -121,6 +121,10 @@ CASES = [
     (["synth", "--rp-noise", "nan", "--out", "{out}"], "--rp-noise nan out of range"),
     (["synth", "--x-star-ohm", "inf", "--out", "{out}"], "--x-star-ohm inf out of range"),
     (["record", "{out}/r.csv", "--seconds", "nan"], "--seconds nan out of range"),
+    # --seconds 0 is not "forever" (left out, they run until Ctrl-C): refused with the range, before the device
+    *[([cmd, *extra, "--seconds", v], f"--seconds {v} out of range: a number of seconds in (0, 1e9]; leave --seconds "
+       "out to run until Ctrl-C") for cmd, extra in (("record", ["{out}/r.csv"]), ("arm", []), ("monitor", []))
+      for v in ("0", "-1", "inf")],
     (["mode", "akhtar", "--rate-hz", "nan"], "invalid int value"),
     (["arm", "--channel", "9"], "invalid choice"),
 ]
@@ -154,6 +158,15 @@ def test_bad_input_is_one_clear_line_and_no_file(corpus, tmp_path, monkeypatch, 
     assert lines[0].startswith("steadytouch"), err
     assert words in lines[0], err
     assert sorted(p.name for p in out.iterdir()) == [], "an output file was written"
+
+
+def test_seconds_help_says_what_leaving_it_out_does():
+    from steadytouch.cli import build_parser
+
+    subs = build_parser()._subparsers._group_actions[0].choices
+    for name in ("record", "arm", "monitor"):
+        h = " ".join(subs[name].format_help().split())
+        assert "in (0, 1e9] s (left out: until Ctrl-C" in h, name
 
 
 def test_the_good_file_of_the_corpus_is_accepted(corpus, tmp_path, monkeypatch, capsys):
