@@ -123,14 +123,19 @@ def cmd_sim(a) -> int:
     refuse_existing([out / f"{stem}-{m}.csv" for m in modes] + ([] if a.no_plot else [out / f"{stem}.png"]),
                     a.overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    with Outputs() as outputs:  # every file appears only when the whole run succeeded
-        return _sim(a, keys, duration, cal, modes, out, outputs)
+    files: list[Path] = []  # each run's file, written (atomically) as the run completes
+    try:
+        return _sim(a, keys, duration, cal, modes, out, files)
+    except KeyboardInterrupt:  # every completed run's file is kept: say which
+        say(f"interrupted: kept {', '.join(map(str, files))} (the runs that completed)" if files else
+            "interrupted: no run was complete, no file written")
+        raise
 
 
-def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
+def _sim(a, keys, duration, cal, modes, out, files: list[Path]) -> int:
     from .progress import Progress
 
-    runs, files = {}, []
+    runs = {}
     stem = Path(a.scenario).stem
     for m in modes:
         t0 = time.perf_counter()
@@ -149,9 +154,9 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         try:
             reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board,
                                 on_reports=seen)
-        except KeyboardInterrupt:  # no file of an unfinished run is written (Outputs); say how far it got
-            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file written "
-                             "(sim writes its files when every run is complete)"))
+        except KeyboardInterrupt:  # an unfinished run writes no file; say how far it got
+            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file for the "
+                             f"{m} run"))
             raise
         prog.clear()
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
@@ -160,7 +165,8 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         tel = [r for r in reps if isinstance(r, Telemetry)]
         info = next((r for r in reps if isinstance(r, Info)), None)
         path = out / f"{stem}-{m}.csv"
-        write_recording(outputs.path(path), tel, sim_meta(a, cal, m, info))
+        with Outputs() as outputs:  # a temporary name renamed over the final one: complete or absent
+            write_recording(outputs.path(path), tel, sim_meta(a, cal, m, info))
         runs[m] = tel
         files.append(path)
         done = Progress(f"  sim {m}", clock=prog.clock)  # the summary, from every report of the run
@@ -180,10 +186,12 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
     if not a.no_plot:
         from .plot import fig5
 
-        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(outputs._files[k][0]))
+        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(files[k]))
                 for k, m in enumerate(modes)]
         png = out / f"{stem}.png"
-        fig5(recs, outputs.path(png))
+        with Outputs() as outputs:
+            fig5(recs, outputs.path(png))
+        files.append(png)
         say(f"  figure (the paper's Fig. 5 layout) -> {png}")
     say("")
     say("mQ error: |median(measured - target)| over each hold, in uC/kohm (the paper's settle threshold: 2.5e-05);")

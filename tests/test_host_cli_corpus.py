@@ -210,7 +210,9 @@ def test_audit_names_a_recorded_pulse_past_the_cores_limits(corpus, tmp_path, ca
     assert len(err) == 1 and f"big.csv: data row 2: {field}={value} out of range 0.." in err[0], err
 
 
-def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
+def test_an_interrupted_sim_keeps_every_completed_run(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the second mode runs: the first mode's CSV, complete, is kept (it said "-> path" and then
+    "no file written", and the folder was empty); the unfinished run leaves nothing, no temporary file either."""
     import steadytouch.cli as cli
 
     calls = []
@@ -224,9 +226,15 @@ def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(cli, "run_firmware", fake_run)
     out = tmp_path / "out"
-    assert main(["sim", "gel-step", "--out", str(out), "--no-plot"]) == 130
-    assert "interrupted" in capsys.readouterr().err
-    assert len(calls) == 2 and list(out.iterdir()) == []  # the first mode's CSV was not left behind
+    assert main(["sim", "gel-step", "--out", str(out)]) == 130
+    std = capsys.readouterr()
+    assert "interrupted" in std.err and len(calls) == 2
+    kept = out / "gel-step-akhtar.csv"
+    assert [p.name for p in out.iterdir()] == [kept.name]  # no open-loop CSV, no figure, no temporary file
+    assert f"-> {kept}" in std.out and "no file for the open run" in std.out
+    assert f"interrupted: kept {kept} (the runs that completed)" in std.out
+    capsys.readouterr()
+    assert main(["audit", str(kept)]) == 0 and "bit-exact" in capsys.readouterr().out  # complete, not cut
 
 
 @pytest.mark.parametrize("url, words", [
