@@ -1201,6 +1201,10 @@ def main(argv=None) -> int:
                 old[sig] = signal.signal(sig, _terminate)
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not where Ctrl-C is ignored)
             old[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
+    from .closedpipe import Quiet
+
+    stdout = sys.stdout
+    sys.stdout = Quiet(stdout)  # a reader that goes away (`| head -1`): the work and its files are finished
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # degenerate data is an error of its own, below
@@ -1215,6 +1219,8 @@ def main(argv=None) -> int:
         print("steadytouch: interrupted", file=sys.stderr)
         return 130
     finally:
+        sys.stdout.flush()
+        sys.stdout = stdout
         for sig, h in old.items():
             signal.signal(sig, h)
 
