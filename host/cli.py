@@ -1078,9 +1078,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("mode", _simple("mode", lambda a: MODES[a.mode], lambda a: a.rate_hz),
             "choose the controller (akhtar: the paper; fast: the Newton variant; open, charge, energy, pwlinear: baselines) and the frame rate",
-            "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
+            "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 50\n"
+            "  steadytouch limits --i-min-ua 500 --i-max-ua 5000 --t-min-us 100 --t-max-us 3600 --q-max-pc 5000000\n"
+            "  steadytouch mode open --rate-hz 100   (2 channels: 100 Hz needs t_max <= 3600 us)")
     s.add_argument("mode", choices=list(MODES))
-    s.add_argument("--rate-hz", type=int, default=0, help=f"{hp.RATE_MIN_HZ}-{hp.RATE_MAX_HZ} (default: unchanged)")
+    s.add_argument("--rate-hz", type=int, default=0, help=f"{hp.RATE_MIN_HZ}-{hp.RATE_MAX_HZ} Hz, as far as the frame "
+                   "allows: rate x the longest frame (each channel's pulse of up to t_max and its work) must stay "
+                   "within 1 s; e.g. 2 channels with t_max 8000 us: at most 53 Hz (a lower t_max, `steadytouch "
+                   "limits`, allows more); a rate that does not fit is refused naming the rates that do "
+                   "(default: unchanged)")
 
     add("info", cmd_info, "firmware version, board, limits, mode and each channel's calibration",
         "  steadytouch info\n  steadytouch info --device sim://steady")

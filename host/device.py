@@ -21,10 +21,12 @@ from contextlib import contextmanager
 
 import hid_protocol as hp
 
-from .protocol import COMMAND_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
+from .protocol import COMMAND_WORDS, RESULT_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
 from .transport import Transport, TransportError
 
 SEQ_MOD = 1 << 30
+# SET_MODE refused for its rate byte (the frame does not fit): the ack's words
+_RATE_REFUSED = f"{COMMAND_WORDS[hp.CMD_SET_MODE]}: {RESULT_WORDS[hp.RES_OUT_OF_RANGE]} (byte {hp.O_ARG + 1})"
 
 
 class DeviceError(Exception):
@@ -231,7 +233,21 @@ class Device:
         return self.command(self.cmds.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc))
 
     def mode(self, mode, rate_hz=0):
-        return self.command(self.cmds.set_mode(mode, rate_hz))
+        """SET_MODE; a new rate is first checked against the frame the device reports (GET_INFO, read here if not
+        yet known: its channels and t_max): a rate that cannot fit is refused on the host naming the rates that
+        can (CommandError), nothing sent. The device's own refusal of the rate byte says the same words."""
+        if rate_hz and self.cmds.check and self.cmds.frame is None:
+            self.info()
+        try:
+            return self.command(self.cmds.set_mode(mode, rate_hz))
+        except DeviceError as e:
+            if rate_hz and e.refused and self.cmds.frame is not None and str(e) == _RATE_REFUSED:
+                n, _, t_max = self.cmds.frame
+                raise DeviceError(f"rate_hz={rate_hz} out of range: the device refused it; with {n} channel(s) and "
+                                  f"t_max_us={t_max} it accepts {hp.RATE_MIN_HZ}..{hp.rate_max_fitting(n, t_max)} Hz, "
+                                  f"{hp.RATE_MIN_HZ}..{hp.rate_max_fitting(n, t_max, 1)} Hz with a skin model set "
+                                  "(hid_protocol.frame_fits)", refused=True) from None
+            raise
 
     def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
         return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))
