@@ -241,6 +241,11 @@ def test_an_interrupted_sim_keeps_every_completed_run(tmp_path, monkeypatch, cap
     ("sim://steady?channels=9", "--channels=9 out of range [1, 4]"),
     ("sim://steady?channels=x", "channels, seed and frames take whole numbers"),
     ("sim://steady?mode=bogus", "mode is akhtar, fast, open"),
+    # an option the URL does not take (a typo) or a value it does not know was silently ignored
+    ("sim://steady?chanels=4", "unknown option chanels; it takes channels=1-4; seed=a whole number; frames="),
+    ("sim://steady?channels=2&Seed=3&x=1", "unknown options Seed, x; it takes channels=1-4;"),
+    ("sim://steady?realtime=maybe", "realtime=maybe is not one of 1|0 (also yes|no, true|false)"),
+    ("emu://steady?chanels=4", "unknown option chanels; it takes scenario=a scenario name or .csv file; channels=1-4"),
     ("tcp://nowhere", "unknown device"),
 ])
 def test_bad_device_urls_are_one_line(url, words, capsys):
