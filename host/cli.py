@@ -98,12 +98,19 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
 
 
 def sim_meta(a, cal: Calib, m: str, info: Info | None = None) -> dict:
-    """A simulated run's header. Its limits: the device's own (info: the GET_INFO its --auto start answers; the
+    """A simulated run's header. Its firmware: the version the simulated device reports (GET_INFO), not the host
+    package's. Its limits: the device's own (info: the GET_INFO its --auto start answers; the
     realistic board without a DAC gain holds them, `audit` replays with them), else board_config's."""
     lim = default_limits() if info is None else {
         "i_min_ua": info.i_min_ua, "i_max_ua": info.i_max_ua, "t_min_us": info.t_min_us, "t_max_us": info.t_max_us,
         "q_max_pc": info.q_max_pc}
-    return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
+    if info is not None:
+        firmware = info.firmware  # what the simulated device said, as `info --device sim://...` shows it
+    else:
+        from .flash import fw_version
+
+        firmware = fw_version()  # firmware/stim.py's FW_VERSION: the one place the version is kept
+    return {"firmware": firmware, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
             "n_channels": a.channels, "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
             "y_star_pc": cal.y_star_pc, **lim, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 

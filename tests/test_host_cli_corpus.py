@@ -277,3 +277,18 @@ def test_audit_and_plot_refuse_a_row_on_a_channel_the_recording_does_not_have(tm
         assert len(err) == 1 and f"line {k + 1}: channel {channel} is not one of the recording's channels " \
             "(it has channels 0..1)" in err[0], err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_sim_recording_names_the_firmware_version_info_reports(tmp_path, capsys):
+    """`sim`'s CSV header said `firmware: 0.1.0` (the host package's version) while `info --device sim://steady`
+    reports the firmware's own (firmware/stim.py FW_VERSION)."""
+    from steadytouch.device import Device
+    from steadytouch.flash import fw_version
+    from steadytouch.record import read_recording
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady") as t:
+        reported = Device(t).info().firmware
+    assert reported == fw_version()
+    assert main(["sim", "steady", "--mode", "akhtar", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert read_recording(tmp_path / "steady-akhtar.csv")[0]["firmware"] == reported
