@@ -19,7 +19,7 @@ import sensation_core as sc
 
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
-from .files import FileProblem, Outputs, dump_json, refuse_existing
+from .files import FileProblem, Outputs, dump_json, out_folder, refuse_existing, writable_file
 from .protocol import (FW_OWN_LIMITS, STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration,
                        held_reason)
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
@@ -127,9 +127,10 @@ def cmd_sim(a) -> int:
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
     stem = Path(a.scenario).stem
+    out_folder(out, create=False)
     refuse_existing([out / f"{stem}-{m}.csv" for m in modes] + ([] if a.no_plot else [out / f"{stem}.png"]),
                     a.overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     files: list[Path] = []  # each run's file, written (atomically) as the run completes
     try:
         return _sim(a, keys, duration, cal, modes, out, files)
@@ -382,6 +383,7 @@ def cmd_calibrate_interactive(a) -> int:
             raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
+    out_folder(out, create=False)
     refuse_existing([out / n for n in ("session.csv", "calibration.json", "session-partial.csv")], a.overwrite)
     levels = {"weak": a.weak_ua, "strong": a.strong_ua}
     prog = Progress("calibrate")
@@ -397,7 +399,7 @@ def cmd_calibrate_interactive(a) -> int:
         except (Stopped, KeyboardInterrupt) as e:  # q, Ctrl-C, SIGTERM: the matches made so far are kept
             kept = ""
             if s.rows:
-                out.mkdir(parents=True, exist_ok=True)
+                out_folder(out)
                 with Outputs() as o:
                     write_rows(o.path(out / "session-partial.csv"), s.rows)
                 kept = f"; the {len(s.rows)} points matched so far -> {out / 'session-partial.csv'} (not fitted)"
@@ -408,7 +410,7 @@ def cmd_calibrate_interactive(a) -> int:
                 return 1
             raise
         say(prog.summary(s.where()))
-        out.mkdir(parents=True, exist_ok=True)
+        out_folder(out)
         data = out / "session.csv"
         with Outputs() as o:  # the measured session is kept even if the fit fails
             write_rows(o.path(data), res.rows)
@@ -554,6 +556,7 @@ def cmd_record(a) -> int:
 
     out = Path(a.file)
     a.seconds = _seconds(a)
+    writable_file(out, "recording.csv")
     refuse_existing([out], a.overwrite, "choose another file name")
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
@@ -566,7 +569,7 @@ def cmd_record(a) -> int:
         say(f"recording {a.device} -> {out}  (Ctrl-C to stop)")
         t_end = time.monotonic() + a.seconds if a.seconds else None
         prog = Progress("record", a.seconds)
-        lost_device = None
+        lost_device = cannot_write = None
         try:
             with d.live(arm=hp.CH_ALL if a.arm else None), _lab_samples(link), _stop_between_reports() as stop:
                 while not stop and (t_end is None or time.monotonic() < t_end):
@@ -576,18 +579,28 @@ def cmd_record(a) -> int:
                         lost_device = e
                         break
                     if isinstance(rep, Telemetry):
-                        rec.write(rep)
+                        try:
+                            rec.write(rep)
+                        except RecordingError as e:  # a full disk: stop (and disarm), say what the file holds
+                            cannot_write = e
+                            break
                         prog.add(rep)
                     prog.tick(f"{d.lost} reports lost")
         except KeyboardInterrupt:
             pass
         finally:
-            rec.close()
+            try:
+                rec.close()
+            except RecordingError as e:
+                cannot_write = cannot_write or e
         bad = f", {d.bad} undecodable reports skipped" if d.bad else ""
         say(prog.summary(f"{d.lost} reports lost{bad}"))
-        say(f"saved {rec.rows} rows to {out}")
+        say(f"saved {rec.saved} rows to {out}")
         say(_disarm_words(d, a.device))
         _lab_finish(link)
+        if cannot_write is not None:
+            print(f"steadytouch: {cannot_write}", file=sys.stderr)
+            return 1
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
             return 1
@@ -767,6 +780,10 @@ def cmd_plot(a) -> int:
         raise RecordingError(f"no pulses on channel {a.channel} in any of the recordings: nothing to plot")
     out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
     p = out.with_name(out.stem + "-planes.png")
+    for f in (out, p) if a.planes else (out,):
+        writable_file(f, Path(a.files[0]).stem + ".png")
+    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise FileProblem(f"--out {out}: a figure's file name ends in .png (or .pdf, .svg)")
     refuse_existing([out] + ([p] if a.planes else []), a.overwrite)
     with Outputs() as o:
         fig5(recs, o.path(out), a.channel)
@@ -820,6 +837,7 @@ def cmd_fit(a) -> int:
     from . import fit as F
 
     out = Path(a.out)
+    out_folder(out, create=False)
     refuse_existing([out / "calibration.json", out / "fit.png"], a.overwrite)
     sets = F.load(a.file)
     res = F.fit(sets)
@@ -840,7 +858,7 @@ def cmd_fit(a) -> int:
         say("one-tailed Wilcoxon signed-rank test of r2 > 0.7 per condition, Holm-Bonferroni corrected:")
         for line in F.table(res):
             say("  " + line)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     png = out / "fit.png"
     with Outputs() as o:
         o.path(out / "calibration.json").write_text(dump_json(cal, "calibration") + "\n")
@@ -921,9 +939,10 @@ def cmd_synth(a) -> int:
     _finite("y_star_pc", a.y_star_pc, 0, 1e6)
     _finite("rp_noise", a.rp_noise, 0, 0.5)
     out = Path(a.out)
+    out_folder(out, create=False)
     refuse_existing([out / "exp1.csv", out / "exp2.csv"], a.overwrite)
     sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     with Outputs() as o:
         write_rows(o.path(out / "exp1.csv"), sp.exp1_rows(a.participants))
         write_rows(o.path(out / "exp2.csv"), sp.exp2_rows(a.participants))

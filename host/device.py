@@ -180,11 +180,23 @@ class Device:
                 not isinstance(rep, Ack) or rep.command == report[0]
             ):
                 if not rep.ok:
+                    if rep.result == hp.RES_BAD_CHANNEL and report[0] != hp.CMD_GET_INFO:
+                        raise DeviceError(self._no_such_channel(name, report[hp.O_OUT_CH]), refused=True)
                     raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}",
                                       refused=True)
                 self.cmds.applied(report)  # a new rate or t_max: the host's frame check follows it
                 return rep
             self._pending.append(rep)
+
+    def _no_such_channel(self, name: str, ch: int) -> str:
+        """A command refused for its channel: the channels the device has (GET_INFO, read now if not yet known)."""
+        if self.cmds.frame is None:
+            try:
+                self.info()
+            except (DeviceError, TransportError, ProtocolError):
+                return f"{name}: no such channel: {ch} (the device did not say how many it has)"
+        n = self.cmds.frame[0]
+        return f"{name}: channel {ch} out of range: the device has channel{'s 0..' if n > 1 else ' '}{n - 1}"
 
     # convenience wrappers, each waiting for its ack
     def info(self) -> Info:

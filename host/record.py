@@ -4,6 +4,7 @@ but (at most) its last second and is still readable."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import time
 from pathlib import Path
@@ -24,31 +25,53 @@ class RecordingError(ValueError):
 
 
 class Recorder:
+    """A recording written as it comes. A write that fails (a full disk, a removed drive) is a RecordingError
+    naming the file, the reason and the rows saved in it (those of the last flush); the file is then closed."""
+
     def __init__(self, path: Path | str, meta: dict, flush_s: float = 1.0):
         self.path = Path(path)
-        self.f = open(self.path, "w", newline="")
-        self.f.write(f"# {FORMAT}\n")
-        for k, v in meta.items():
-            self.f.write(f"# {k}: {v}\n")
-        self.w = csv.writer(self.f)
-        self.w.writerow(COLUMNS)
-        self.f.flush()
         self.rows = 0
+        self.saved = 0  # rows on disk: those of the last successful flush
+        try:
+            self.f = open(self.path, "w", newline="")
+        except OSError as e:
+            raise RecordingError(f"{self.path}: cannot create the recording ({e.strerror})") from None
+        self.w = csv.writer(self.f)
         self.flush_s = flush_s
+        with self._guard():
+            self.f.write(f"# {FORMAT}\n")
+            for k, v in meta.items():
+                self.f.write(f"# {k}: {v}\n")
+            self.w.writerow(COLUMNS)
+            self.f.flush()
         self._last_flush = time.monotonic()
 
+    @contextlib.contextmanager
+    def _guard(self):
+        try:
+            yield
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                self.f.close()  # (what could not be written is dropped; the file holds what was flushed)
+            raise RecordingError(f"{self.path}: cannot write ({e.strerror}): the recording stopped; "
+                                 f"{self.saved} rows saved in it") from None
+
     def write(self, t: Telemetry) -> None:
-        self.w.writerow([getattr(t, c) for c in COLUMNS])
-        self.rows += 1
-        now = time.monotonic()
-        if now - self._last_flush >= self.flush_s:
-            self.f.flush()
-            self._last_flush = now
+        with self._guard():
+            self.w.writerow([getattr(t, c) for c in COLUMNS])
+            self.rows += 1
+            now = time.monotonic()
+            if now - self._last_flush >= self.flush_s:
+                self.f.flush()
+                self.saved = self.rows
+                self._last_flush = now
 
     def close(self) -> None:
         if not self.f.closed:
-            self.f.flush()
-            self.f.close()
+            with self._guard():
+                self.f.flush()
+                self.saved = self.rows
+                self.f.close()
 
     def __enter__(self):
         return self
