@@ -24,7 +24,7 @@ test: setup
 
 ## run: the main job: the firmware in the MicroPython VM on the simulated peel test, telemetry on the host
 run: setup
-	$(BIN)/steadytouch sim peel --out out
+	$(BIN)/steadytouch sim peel --out out --overwrite  # (the run's own folder: replaced on every run)
 
 ## example: the paper's worked example through the core in the MicroPython VM
 example: setup

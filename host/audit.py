@@ -29,7 +29,7 @@ class Mismatch:
 class AuditResult:
     checked: int
     mismatches: list[Mismatch]
-    skipped: int  # pulses before the replay had a calibration
+    skipped: int  # pulses before the replay had a calibration (or on a channel the header does not calibrate)
 
 
 def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
@@ -69,11 +69,14 @@ def _replay(rows, ctls, cals) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     cal_rp = dict.fromkeys(ctls, 0)  # per channel: the last calibration pulse's Rp not yet confirmed
     for n, r in enumerate(rows, start=1):
-        ch = r["channel"]
-        if r["i_ua"] == 0 or ch not in ctls:
+        ch = r["channel"]  # one of the recording's channels (read_recording refuses any other)
+        if r["i_ua"] == 0:
             if ch in cal_rp:
                 cal_rp[ch] = 0  # (a frame without a pulse: stopped; ARM starts the calibration again)
             continue  # no pulse this frame
+        if ch not in ctls:  # a channel the header gives no calibration for
+            skipped += 1
+            continue
         try:
             done = _step(ctls[ch], r, cals[ch], cal_rp, ch)
         except ValueError as e:

@@ -19,7 +19,7 @@ import sensation_core as sc
 
 from . import __version__
 from .device import Device, DeviceError, vmon_warning
-from .files import FileProblem, Outputs, dump_json
+from .files import FileProblem, Outputs, dump_json, out_folder, refuse_existing, writable_file
 from .protocol import (FW_OWN_LIMITS, STOP_WORDS, VMON_STATE_WORDS, CalInfo, Commands, Info, Telemetry, check_calibration,
                        held_reason)
 from .record import CUT, Recorder, RecordingError, read_recording, write_recording
@@ -55,6 +55,19 @@ def _finite(name, v, lo=-math.inf, hi=math.inf):
     return v
 
 
+def _seconds(a) -> float:
+    """--seconds: a duration in (0, 1e9] s; left out, the command runs until Ctrl-C (0 here, as Progress takes it).
+    An explicit 0 is refused: a stimulator runs for a duration the user gave, or until they stop it, never for
+    'forever' by a number that reads as 'none'."""
+    if a.seconds is None:
+        return 0.0
+    v = a.seconds
+    if not (math.isfinite(v) and 0 < v <= 1e9):
+        raise ValueError(f"--seconds {v:g} out of range: a number of seconds in (0, 1e9]; leave --seconds out to "
+                         "run until Ctrl-C")
+    return v
+
+
 # ---------------------------------------------------------------- sim
 def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]:
     bounds = [k[0] for k in keys] + [duration_s]
@@ -85,13 +98,20 @@ def phase_table(keys, duration_s, runs: dict[str, list[Telemetry]]) -> list[str]
 
 
 def sim_meta(a, cal: Calib, m: str, info: Info | None = None) -> dict:
-    """A simulated run's header. Its limits: the device's own (info: the GET_INFO its --auto start answers; the
+    """A simulated run's header. Its firmware: the version the simulated device reports (GET_INFO), not the host
+    package's. Its limits: the device's own (info: the GET_INFO its --auto start answers; the
     realistic board without a DAC gain holds them, `audit` replays with them), else board_config's."""
     lim = default_limits() if info is None else {
         "i_min_ua": info.i_min_ua, "i_max_ua": info.i_max_ua, "t_min_us": info.t_min_us, "t_max_us": info.t_max_us,
         "q_max_pc": info.q_max_pc}
-    return {"firmware": __version__, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
-            "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
+    if info is not None:
+        firmware = info.firmware  # what the simulated device said, as `info --device sim://...` shows it
+    else:
+        from .flash import fw_version
+
+        firmware = fw_version()  # firmware/stim.py's FW_VERSION: the one place the version is kept
+    return {"firmware": firmware, "board": "sim", "device": f"sim://{a.scenario}" + ("?board=ideal" if getattr(a, "ideal_board", False) else ""), "scenario": a.scenario,
+            "n_channels": a.channels, "mode": m, "i0_ua": cal.i0_ua, "t0_us": cal.t0_us, "x_star_ohm": cal.x_star_ohm,
             "y_star_pc": cal.y_star_pc, **lim, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
 
 
@@ -106,15 +126,24 @@ def cmd_sim(a) -> int:
         _within_soft_limits(Device(t).info(), cal.i0_ua, cal.t0_us, "--i0-ua", sim=True)
     modes = ["akhtar", "open"] if a.mode == "both" else [a.mode]
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with Outputs() as outputs:  # every file appears only when the whole run succeeded
-        return _sim(a, keys, duration, cal, modes, out, outputs)
+    stem = Path(a.scenario).stem
+    out_folder(out, create=False)
+    refuse_existing([out / f"{stem}-{m}.csv" for m in modes] + ([] if a.no_plot else [out / f"{stem}.png"]),
+                    a.overwrite)
+    out_folder(out)
+    files: list[Path] = []  # each run's file, written (atomically) as the run completes
+    try:
+        return _sim(a, keys, duration, cal, modes, out, files)
+    except KeyboardInterrupt:  # every completed run's file is kept: say which
+        say(f"interrupted: kept {', '.join(map(str, files))} (the runs that completed)" if files else
+            "interrupted: no run was complete, no file written")
+        raise
 
 
-def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
+def _sim(a, keys, duration, cal, modes, out, files: list[Path]) -> int:
     from .progress import Progress
 
-    runs, files = {}, []
+    runs = {}
     stem = Path(a.scenario).stem
     for m in modes:
         t0 = time.perf_counter()
@@ -133,9 +162,9 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         try:
             reps = run_firmware(a.scenario, m, cal, a.channels, a.seed, progress=show, ideal=a.ideal_board,
                                 on_reports=seen)
-        except KeyboardInterrupt:  # no file of an unfinished run is written (Outputs); say how far it got
-            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file written "
-                             "(sim writes its files when every run is complete)"))
+        except KeyboardInterrupt:  # an unfinished run writes no file; say how far it got
+            say(prog.summary(f"{prog.work_done:.1f} of {duration:.0f} s simulated; interrupted: no file for the "
+                             f"{m} run"))
             raise
         prog.clear()
         bad = [r for r in reps if not isinstance(r, Telemetry) and not r.ok]
@@ -144,7 +173,8 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
         tel = [r for r in reps if isinstance(r, Telemetry)]
         info = next((r for r in reps if isinstance(r, Info)), None)
         path = out / f"{stem}-{m}.csv"
-        write_recording(outputs.path(path), tel, sim_meta(a, cal, m, info))
+        with Outputs() as outputs:  # a temporary name renamed over the final one: complete or absent
+            write_recording(outputs.path(path), tel, sim_meta(a, cal, m, info))
         runs[m] = tel
         files.append(path)
         done = Progress(f"  sim {m}", clock=prog.clock)  # the summary, from every report of the run
@@ -164,10 +194,12 @@ def _sim(a, keys, duration, cal, modes, out, outputs) -> int:
     if not a.no_plot:
         from .plot import fig5
 
-        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(outputs._files[k][0]))
+        recs = [("with the controller" if m == "akhtar" else "open loop", *read_recording(files[k]))
                 for k, m in enumerate(modes)]
         png = out / f"{stem}.png"
-        fig5(recs, outputs.path(png))
+        with Outputs() as outputs:
+            fig5(recs, outputs.path(png))
+        files.append(png)
         say(f"  figure (the paper's Fig. 5 layout) -> {png}")
     say("")
     say("mQ error: |median(measured - target)| over each hold, in uC/kohm (the paper's settle threshold: 2.5e-05);")
@@ -257,7 +289,7 @@ def cmd_arm(a) -> int:
     or every armed channel stopped by the device)."""
     ch = _channel(a)
     _precheck("arm", ch)
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
     from .progress import Progress
 
     prog = Progress("arm", a.seconds)
@@ -351,6 +383,8 @@ def cmd_calibrate_interactive(a) -> int:
             raise ValueError(f"--{k.replace('_', '-')} {getattr(a, k)} out of range: 1..{sc.I_LIMIT_UA} uA")
     responder = SimResponder(a.seed) if a.participant == "sim" else KeyboardResponder()
     out = Path(a.out)
+    out_folder(out, create=False)
+    refuse_existing([out / n for n in ("session.csv", "calibration.json", "session-partial.csv")], a.overwrite)
     levels = {"weak": a.weak_ua, "strong": a.strong_ua}
     prog = Progress("calibrate")
     with open_transport(a.device) as t:
@@ -365,7 +399,7 @@ def cmd_calibrate_interactive(a) -> int:
         except (Stopped, KeyboardInterrupt) as e:  # q, Ctrl-C, SIGTERM: the matches made so far are kept
             kept = ""
             if s.rows:
-                out.mkdir(parents=True, exist_ok=True)
+                out_folder(out)
                 with Outputs() as o:
                     write_rows(o.path(out / "session-partial.csv"), s.rows)
                 kept = f"; the {len(s.rows)} points matched so far -> {out / 'session-partial.csv'} (not fitted)"
@@ -376,7 +410,7 @@ def cmd_calibrate_interactive(a) -> int:
                 return 1
             raise
         say(prog.summary(s.where()))
-        out.mkdir(parents=True, exist_ok=True)
+        out_folder(out)
         data = out / "session.csv"
         with Outputs() as o:  # the measured session is kept even if the fit fails
             write_rows(o.path(data), res.rows)
@@ -521,7 +555,9 @@ def cmd_record(a) -> int:
     from .progress import Progress
 
     out = Path(a.file)
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
+    writable_file(out, "recording.csv")
+    refuse_existing([out], a.overwrite, "choose another file name")
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
     with open_transport(a.device) as t:
@@ -533,7 +569,7 @@ def cmd_record(a) -> int:
         say(f"recording {a.device} -> {out}  (Ctrl-C to stop)")
         t_end = time.monotonic() + a.seconds if a.seconds else None
         prog = Progress("record", a.seconds)
-        lost_device = None
+        lost_device = cannot_write = None
         try:
             with d.live(arm=hp.CH_ALL if a.arm else None), _lab_samples(link), _stop_between_reports() as stop:
                 while not stop and (t_end is None or time.monotonic() < t_end):
@@ -543,18 +579,28 @@ def cmd_record(a) -> int:
                         lost_device = e
                         break
                     if isinstance(rep, Telemetry):
-                        rec.write(rep)
+                        try:
+                            rec.write(rep)
+                        except RecordingError as e:  # a full disk: stop (and disarm), say what the file holds
+                            cannot_write = e
+                            break
                         prog.add(rep)
                     prog.tick(f"{d.lost} reports lost")
         except KeyboardInterrupt:
             pass
         finally:
-            rec.close()
+            try:
+                rec.close()
+            except RecordingError as e:
+                cannot_write = cannot_write or e
         bad = f", {d.bad} undecodable reports skipped" if d.bad else ""
         say(prog.summary(f"{d.lost} reports lost{bad}"))
-        say(f"saved {rec.rows} rows to {out}")
+        say(f"saved {rec.saved} rows to {out}")
         say(_disarm_words(d, a.device))
         _lab_finish(link)
+        if cannot_write is not None:
+            print(f"steadytouch: {cannot_write}", file=sys.stderr)
+            return 1
         if lost_device is not None:
             print(f"steadytouch: device lost: {lost_device}", file=sys.stderr)
             return 1
@@ -643,7 +689,7 @@ def cmd_monitor(a) -> int:
 
     state = MonitorState()
     tty = sys.stdout.isatty()
-    _finite("seconds", a.seconds, 0, 1e9)
+    a.seconds = _seconds(a)
     _finite("lsl_wait", a.lsl_wait, 0, 3600)
     _lab_check(a)
     live = LivePlot() if a.plot else None
@@ -734,6 +780,11 @@ def cmd_plot(a) -> int:
         raise RecordingError(f"no pulses on channel {a.channel} in any of the recordings: nothing to plot")
     out = Path(a.out or Path(a.files[0]).with_suffix(".png"))
     p = out.with_name(out.stem + "-planes.png")
+    for f in (out, p) if a.planes else (out,):
+        writable_file(f, Path(a.files[0]).stem + ".png")
+    if out.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise FileProblem(f"--out {out}: a figure's file name ends in .png (or .pdf, .svg)")
+    refuse_existing([out] + ([p] if a.planes else []), a.overwrite)
     with Outputs() as o:
         fig5(recs, o.path(out), a.channel)
         if a.planes:
@@ -785,9 +836,11 @@ def cmd_flash(a) -> int:
 def cmd_fit(a) -> int:
     from . import fit as F
 
+    out = Path(a.out)
+    out_folder(out, create=False)
+    refuse_existing([out / "calibration.json", out / "fit.png"], a.overwrite)
     sets = F.load(a.file)
     res = F.fit(sets)
-    out = Path(a.out)
     cal = dict(res.calibration(), source=str(a.file))
     q_min = min(float(s.q_pc.min()) for s in sets)
     if not (sc.X_STAR_MIN_OHM <= cal["x_star_ohm"] <= 0 and 0 <= cal["y_star_pc"] < q_min):
@@ -805,7 +858,7 @@ def cmd_fit(a) -> int:
         say("one-tailed Wilcoxon signed-rank test of r2 > 0.7 per condition, Holm-Bonferroni corrected:")
         for line in F.table(res):
             say("  " + line)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out)
     png = out / "fit.png"
     with Outputs() as o:
         o.path(out / "calibration.json").write_text(dump_json(cal, "calibration") + "\n")
@@ -885,9 +938,11 @@ def cmd_synth(a) -> int:
     _finite("x_star_ohm", a.x_star_ohm, sc.X_STAR_MIN_OHM, 0)
     _finite("y_star_pc", a.y_star_pc, 0, 1e6)
     _finite("rp_noise", a.rp_noise, 0, 0.5)
-    sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out_folder(out, create=False)
+    refuse_existing([out / "exp1.csv", out / "exp2.csv"], a.overwrite)
+    sp = SimParticipant(a.seed, a.x_star_ohm, a.y_star_pc, a.rp_noise)
+    out_folder(out)
     with Outputs() as o:
         write_rows(o.path(out / "exp1.csv"), sp.exp1_rows(a.participants))
         write_rows(o.path(out / "exp2.csv"), sp.exp2_rows(a.participants))
@@ -915,6 +970,8 @@ def cmd_selftest(a) -> int:
     _finite("load-ohm", a.load_ohm, *st.LOAD_OHM_RANGE)
     if a.pulses < 2 or a.pulses > 100:
         raise st.SelfTestError(f"--pulses {a.pulses} out of range [2, 100]")
+    if a.save_dir is not None:
+        refuse_existing([Path(a.save_dir) / st.CAL_FILE], a.overwrite, "choose another --save-dir")
     url = a.device
     if url.startswith(("sim://", "emu://")) and "load=" not in url:  # the simulated resistor in place of the electrodes
         url += ("&" if "?" in url else "?") + f"load={a.load_ohm}"
@@ -930,6 +987,9 @@ def cmd_selftest(a) -> int:
 
 
 # ------------------------------------------------------------ parser
+OVERWRITE_HELP = "replace output files that exist already (default: refuse, naming them)"
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors in one line (and a pointer to --help)."""
 
@@ -952,6 +1012,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("sim", cmd_sim, "run the firmware in the MicroPython VM against a simulated electrode",
             "  steadytouch sim peel\n  steadytouch sim gel --mode akhtar --out runs/\n"
+            "  steadytouch sim peel --out runs/ --overwrite   (replace the files of an earlier run)\n"
             "  steadytouch sim my-disturbance.csv   (columns time_s,contact,hydration)", device=False)
     s.add_argument("scenario", nargs="?", default="peel", help="steady, peel, gel, gel-step, exercise, off, or a .csv file")
     s.add_argument("--mode", choices=list(MODES) + ["both"], default="both",
@@ -960,6 +1021,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--out", default="out", help="folder for the CSV and PNG files (default: out/)")
     s.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s.add_argument("--ideal-board", action="store_true", help="the ideal board instead of the one with the real "
                    "parts' errors (DAC steps, ADC noise and DNL, monitor gain/offset; docs/simulation.md)")
     s.add_argument("--lsl", action="store_true", help="also stream each run on Lab Streaming Layer (docs/lab.md)")
@@ -972,7 +1034,7 @@ def build_parser() -> argparse.ArgumentParser:
             "disarms it on exit",
             "  steadytouch monitor\n  steadytouch monitor --arm --seconds 30\n"
             "  steadytouch monitor --device 'sim://peel?auto=1000,1000,-1670,186000'")
-    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--seconds", type=float, help="stop after this long, in (0, 1e9] s (left out: until Ctrl-C)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated)")
     s.add_argument("--plot", action="store_true", help="also a live plot window (matplotlib; needs a display)")
     s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
@@ -982,7 +1044,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = add("record", cmd_record, "record telemetry to CSV (flushed every second; Ctrl-C stops cleanly)",
             "  steadytouch record session.csv\n  steadytouch record run.csv --seconds 60 --device 'sim://gel?auto=1000,1000,-1670,186000'")
     s.add_argument("file")
-    s.add_argument("--seconds", type=float, default=0, help="stop after this long (default: until Ctrl-C or device loss)")
+    s.add_argument("--overwrite", action="store_true", help="replace FILE if it exists (default: refuse)")
+    s.add_argument("--seconds", type=float, help="stop after this long, in (0, 1e9] s (left out: until Ctrl-C or "
+                   "device loss)")
     s.add_argument("--arm", action="store_true", help="arm every channel first (it must be calibrated); "
                    "the device is kept alive while recording and disarmed at the end")
     s.add_argument("--lsl", action="store_true", help="also stream telemetry and markers on Lab Streaming Layer (docs/lab.md)")
@@ -1000,12 +1064,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out")
     s.add_argument("--channel", type=int, default=0)
     s.add_argument("--planes", action="store_true")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("arm", cmd_arm, "stimulate while this runs (the first pulse is I0, T0 and measures Rp0); "
             "Ctrl-C, SIGTERM or --seconds disarms; the device stops by itself if the host goes silent",
             "  steadytouch arm\n  steadytouch arm --channel 1 --seconds 60")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
-    s.add_argument("--seconds", type=float, default=0, help="disarm after this long (default: until Ctrl-C)")
+    s.add_argument("--seconds", type=float, help="disarm after this long, in (0, 1e9] s (left out: until Ctrl-C)")
     s = add("disarm", _simple("disarm", _channel), "stop stimulating at once",
             "  steadytouch disarm\n  steadytouch disarm --channel 1")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="default: all channels")
@@ -1027,6 +1092,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--present-s", type=float, default=0.5, help="length of each presentation (s)")
     g.add_argument("--send", action="store_true", help="send the fitted calibration without asking")
     g.add_argument("--out", default="out", help="folder for session.csv and calibration.json")
+    g.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     g.add_argument("--seed", type=int, default=1)
 
     s = add("limits", _simple("limits", lambda a: a.i_min_ua, lambda a: a.i_max_ua, lambda a: a.t_min_us,
@@ -1038,9 +1104,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("mode", _simple("mode", lambda a: MODES[a.mode], lambda a: a.rate_hz),
             "choose the controller (akhtar: the paper; fast: the Newton variant; open, charge, energy, pwlinear: baselines) and the frame rate",
-            "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 100")
+            "  steadytouch mode akhtar\n  steadytouch mode open --rate-hz 50\n"
+            "  steadytouch limits --i-min-ua 500 --i-max-ua 5000 --t-min-us 100 --t-max-us 3600 --q-max-pc 5000000\n"
+            "  steadytouch mode open --rate-hz 100   (2 channels: 100 Hz needs t_max <= 3600 us)")
     s.add_argument("mode", choices=list(MODES))
-    s.add_argument("--rate-hz", type=int, default=0, help=f"{hp.RATE_MIN_HZ}-{hp.RATE_MAX_HZ} (default: unchanged)")
+    s.add_argument("--rate-hz", type=int, default=0, help=f"{hp.RATE_MIN_HZ}-{hp.RATE_MAX_HZ} Hz, as far as the frame "
+                   "allows: rate x the longest frame (each channel's pulse of up to t_max and its work) must stay "
+                   "within 1 s; e.g. 2 channels with t_max 8000 us: at most 53 Hz (a lower t_max, `steadytouch "
+                   "limits`, allows more); a rate that does not fit is refused naming the rates that do "
+                   "(default: unchanged)")
 
     add("info", cmd_info, "firmware version, board, limits, mode and each channel's calibration",
         "  steadytouch info\n  steadytouch info --device sim://steady")
@@ -1077,6 +1149,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("file")
     s.add_argument("--out", default="out", help="folder for calibration.json and fit.png (default out/)")
     s.add_argument("--json", action="store_true", help="print the results as JSON")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("skin", cmd_skin, "fit MODE_FAST's electrode model (Rs, beta, Cp) to calibration pulses; --send sets it",
             "  steadytouch skin pulses.csv   (columns i_ua,t_us,rp_ohm; optional sweep: repeated sweeps, averaged)\n"
@@ -1100,6 +1173,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--x-star-ohm", type=float, default=-1670.0)
     s.add_argument("--y-star-pc", type=float, default=186000.0)
     s.add_argument("--rp-noise", type=float, default=0.01, help="relative Rp measurement noise (default 0.01)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     s = add("selftest", cmd_selftest, "first-run self-test on a resistor in place of the electrodes: fits the "
             "monitor's gain and offset, reports linearity and worst error, stores the correction",
@@ -1114,6 +1188,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "1000 us on the load and asks for the plateau a scope reads across it (mV, on stdin)")
     s.add_argument("--save-dir", default=None, help="also keep a copy of vmon_cal.txt in this folder "
                    "(the device stores its own in its flash)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
     add("devices", cmd_devices, "list steadytouch boards (HID) and Picos (serial) that are connected",
         "  steadytouch devices", device=False)
@@ -1158,6 +1233,10 @@ def main(argv=None) -> int:
                 old[sig] = signal.signal(sig, _terminate)
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not where Ctrl-C is ignored)
             old[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
+    from .closedpipe import Quiet
+
+    stdout = sys.stdout
+    sys.stdout = Quiet(stdout)  # a reader that goes away (`| head -1`): the work and its files are finished
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # degenerate data is an error of its own, below
@@ -1172,6 +1251,8 @@ def main(argv=None) -> int:
         print("steadytouch: interrupted", file=sys.stderr)
         return 130
     finally:
+        sys.stdout.flush()
+        sys.stdout = stdout
         for sig, h in old.items():
             signal.signal(sig, h)
 

@@ -21,10 +21,12 @@ from contextlib import contextmanager
 
 import hid_protocol as hp
 
-from .protocol import COMMAND_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
+from .protocol import COMMAND_WORDS, RESULT_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
 from .transport import Transport, TransportError
 
 SEQ_MOD = 1 << 30
+# SET_MODE refused for its rate byte (the frame does not fit): the ack's words
+_RATE_REFUSED = f"{COMMAND_WORDS[hp.CMD_SET_MODE]}: {RESULT_WORDS[hp.RES_OUT_OF_RANGE]} (byte {hp.O_ARG + 1})"
 
 
 class DeviceError(Exception):
@@ -178,11 +180,23 @@ class Device:
                 not isinstance(rep, Ack) or rep.command == report[0]
             ):
                 if not rep.ok:
+                    if rep.result == hp.RES_BAD_CHANNEL and report[0] != hp.CMD_GET_INFO:
+                        raise DeviceError(self._no_such_channel(name, report[hp.O_OUT_CH]), refused=True)
                     raise DeviceError(rep.words() if isinstance(rep, Ack) else f"{name}: result {rep.result}",
                                       refused=True)
                 self.cmds.applied(report)  # a new rate or t_max: the host's frame check follows it
                 return rep
             self._pending.append(rep)
+
+    def _no_such_channel(self, name: str, ch: int) -> str:
+        """A command refused for its channel: the channels the device has (GET_INFO, read now if not yet known)."""
+        if self.cmds.frame is None:
+            try:
+                self.info()
+            except (DeviceError, TransportError, ProtocolError):
+                return f"{name}: no such channel: {ch} (the device did not say how many it has)"
+        n = self.cmds.frame[0]
+        return f"{name}: channel {ch} out of range: the device has channel{'s 0..' if n > 1 else ' '}{n - 1}"
 
     # convenience wrappers, each waiting for its ack
     def info(self) -> Info:
@@ -231,7 +245,21 @@ class Device:
         return self.command(self.cmds.set_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc))
 
     def mode(self, mode, rate_hz=0):
-        return self.command(self.cmds.set_mode(mode, rate_hz))
+        """SET_MODE; a new rate is first checked against the frame the device reports (GET_INFO, read here if not
+        yet known: its channels and t_max): a rate that cannot fit is refused on the host naming the rates that
+        can (CommandError), nothing sent. The device's own refusal of the rate byte says the same words."""
+        if rate_hz and self.cmds.check and self.cmds.frame is None:
+            self.info()
+        try:
+            return self.command(self.cmds.set_mode(mode, rate_hz))
+        except DeviceError as e:
+            if rate_hz and e.refused and self.cmds.frame is not None and str(e) == _RATE_REFUSED:
+                n, _, t_max = self.cmds.frame
+                raise DeviceError(f"rate_hz={rate_hz} out of range: the device refused it; with {n} channel(s) and "
+                                  f"t_max_us={t_max} it accepts {hp.RATE_MIN_HZ}..{hp.rate_max_fitting(n, t_max)} Hz, "
+                                  f"{hp.RATE_MIN_HZ}..{hp.rate_max_fitting(n, t_max, 1)} Hz with a skin model set "
+                                  "(hid_protocol.frame_fits)", refused=True) from None
+            raise
 
     def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
         return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))

@@ -6,6 +6,9 @@
   run leaves no new or half-written file behind, and an old file is kept.
 - `read_text_file` / `csv_rows`: a text CSV or an error naming the file (binary
   data, unreadable, fields longer than the csv module's limit).
+- `refuse_existing`: an output that exists already is replaced only when the user
+  said so (`--overwrite`): a previous session or recording is never lost by a
+  repeated command.
 - `finite`: no NaN or Infinity reaches a JSON file or a table.
 """
 
@@ -30,6 +33,7 @@ class Outputs:
 
     def path(self, final: Path | str) -> Path:
         final = Path(final)
+        writable_file(final)
         tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp{final.suffix}")
         self._files.append((tmp, final))
         return tmp
@@ -56,6 +60,52 @@ class Outputs:
         else:
             self.discard()
         return False
+
+
+def writable_file(path: Path | str, example: str = "out.csv") -> None:
+    """FileProblem if path cannot be an output file: a folder, a device or other non-regular file (never replaced,
+    even with --overwrite), or a name in a folder that does not exist."""
+    path = Path(path)
+    if path.is_dir():
+        raise FileProblem(f"{path} is a folder: give a file name for the output, e.g. {path / example}")
+    if os.path.lexists(path) and not path.is_file():
+        raise FileProblem(f"{path} is not a regular file (a device, pipe or link to none): give a file name")
+    parent = path.parent
+    if not parent.is_dir():
+        raise FileProblem(f"{path}: the folder {parent} does not exist" if not parent.exists() else
+                          f"{path}: {parent} is not a folder")
+
+
+def out_folder(path: Path | str, flag: str = "--out", create: bool = True) -> Path:
+    """The output folder path, created if needed (create); FileProblem naming it if it is a file or cannot be
+    created. create=False: only the check, before a command's work (the folder is made when it writes)."""
+    path = Path(path)
+    if os.path.lexists(path) and not path.is_dir():
+        raise FileProblem(f"{flag} {path}: not a folder (a file of that name exists): {flag} names the folder "
+                          "the outputs go to")
+    if not create:
+        return path
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise FileProblem(f"{flag} {path}: cannot create the folder ({e.strerror})") from None
+    return path
+
+
+def refuse_existing(paths, overwrite: bool, instead: str = "choose another --out") -> None:
+    """FileProblem naming every one of paths that exists already, unless overwrite (the command's --overwrite);
+    one that cannot be an output file at all (a folder, a device) is refused either way (writable_file).
+    Called before the command does its work: nothing is measured or simulated for a file it may not write."""
+    for p in paths:
+        if os.path.lexists(p) and not Path(p).is_file():
+            writable_file(p)
+    if overwrite:
+        return
+    there = [str(p) for p in paths if os.path.lexists(p)]
+    if there:
+        names = there[0] if len(there) == 1 else ", ".join(there[:-1]) + " and " + there[-1]
+        raise FileProblem(f"{names} already exist{'s' if len(there) == 1 else ''}: --overwrite replaces "
+                          f"{'it' if len(there) == 1 else 'them'} ({instead})")
 
 
 def read_text_file(path: Path | str, what: str = "file") -> str:

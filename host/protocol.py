@@ -550,9 +550,12 @@ class Commands:
                                f"rate to {hp.rate_max_fitting(n, t_max_us, 1)} Hz first ({rule})")
         if what == "rate":
             lower = hp.t_max_fitting(rate_hz, n, m)
-            how = f", or lower t_max_us to {lower} first" if lower >= hp.T_FLOOR_US else ""
-            raise CommandError(f"rate_hz={rate_hz} does not fit the frame with {n} channels and t_max_us={t_max_us}"
-                               f"{with_model}: at most {hp.rate_max_fitting(n, t_max_us, m)} Hz{how} ({rule})")
+            how = (f"; for {rate_hz} Hz lower t_max_us to {lower} first (`steadytouch limits --t-max-us`)"
+                   if lower >= hp.T_FLOOR_US else "")
+            top = hp.rate_max_fitting(n, t_max_us, m)
+            can = f"{hp.RATE_MIN_HZ}..{top} Hz" if top >= hp.RATE_MIN_HZ else "no rate"
+            raise CommandError(f"rate_hz={rate_hz} out of range: with {n} channel(s) and t_max_us={t_max_us}"
+                               f"{with_model} the device accepts {can}{how} ({rule})")
         raise CommandError(f"t_max_us={t_max_us} does not fit the frame with {n} channels at {rate_hz} Hz{with_model}: "
                            f"at most {hp.t_max_fitting(rate_hz, n, m)} us ({rule})")
 

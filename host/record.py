@@ -4,6 +4,7 @@ but (at most) its last second and is still readable."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import time
 from pathlib import Path
@@ -16,6 +17,7 @@ COLUMNS = [
     "mq_target_fc_per_ohm", "mq_last_fc_per_ohm", "next_i_ua", "next_t_us", "flags", "overruns", "loop_us",
 ]
 REQUIRED = ["seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status"]
+MAX_CHANNELS = 4  # the protocol's channels 0..3
 
 
 class RecordingError(ValueError):
@@ -23,31 +25,53 @@ class RecordingError(ValueError):
 
 
 class Recorder:
+    """A recording written as it comes. A write that fails (a full disk, a removed drive) is a RecordingError
+    naming the file, the reason and the rows saved in it (those of the last flush); the file is then closed."""
+
     def __init__(self, path: Path | str, meta: dict, flush_s: float = 1.0):
         self.path = Path(path)
-        self.f = open(self.path, "w", newline="")
-        self.f.write(f"# {FORMAT}\n")
-        for k, v in meta.items():
-            self.f.write(f"# {k}: {v}\n")
-        self.w = csv.writer(self.f)
-        self.w.writerow(COLUMNS)
-        self.f.flush()
         self.rows = 0
+        self.saved = 0  # rows on disk: those of the last successful flush
+        try:
+            self.f = open(self.path, "w", newline="")
+        except OSError as e:
+            raise RecordingError(f"{self.path}: cannot create the recording ({e.strerror})") from None
+        self.w = csv.writer(self.f)
         self.flush_s = flush_s
+        with self._guard():
+            self.f.write(f"# {FORMAT}\n")
+            for k, v in meta.items():
+                self.f.write(f"# {k}: {v}\n")
+            self.w.writerow(COLUMNS)
+            self.f.flush()
         self._last_flush = time.monotonic()
 
+    @contextlib.contextmanager
+    def _guard(self):
+        try:
+            yield
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                self.f.close()  # (what could not be written is dropped; the file holds what was flushed)
+            raise RecordingError(f"{self.path}: cannot write ({e.strerror}): the recording stopped; "
+                                 f"{self.saved} rows saved in it") from None
+
     def write(self, t: Telemetry) -> None:
-        self.w.writerow([getattr(t, c) for c in COLUMNS])
-        self.rows += 1
-        now = time.monotonic()
-        if now - self._last_flush >= self.flush_s:
-            self.f.flush()
-            self._last_flush = now
+        with self._guard():
+            self.w.writerow([getattr(t, c) for c in COLUMNS])
+            self.rows += 1
+            now = time.monotonic()
+            if now - self._last_flush >= self.flush_s:
+                self.f.flush()
+                self.saved = self.rows
+                self._last_flush = now
 
     def close(self) -> None:
         if not self.f.closed:
-            self.f.flush()
-            self.f.close()
+            with self._guard():
+                self.f.flush()
+                self.saved = self.rows
+                self.f.close()
 
     def __enter__(self):
         return self
@@ -95,6 +119,7 @@ def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, lis
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise RecordingError(f"{path} line {k + 1}: missing column(s) {', '.join(missing)}")
+    channels = recording_channels(meta, path)
     rows = []
     for n, line in enumerate(lines[k + 1 :], start=k + 2):
         if not line.strip():
@@ -112,12 +137,32 @@ def read_recording(path: Path | str, allow_cut: bool = False) -> tuple[dict, lis
                 raise RecordingError(f"{path} line {n}: column {h} = {c[:12]}{'...' if len(c) > 12 else ''} "
                                      "out of range (a 32-bit field)")
             row[h] = int(c)
+        if row["channel"] not in channels:
+            raise RecordingError(f"{path} line {n}: channel {row['channel']} is not one of the recording's channels "
+                                 f"({_words(channels)})")
         rows.append(row)
     if not rows:
         raise RecordingError(f"{path}: no pulses recorded" + (f" (cut at line {cut})" if cut else ""))
     if cut:
         meta[CUT] = cut
     return meta, rows
+
+
+def recording_channels(meta: dict, path="recording") -> range:
+    """The channels a recording has: 0..n_channels-1 from its header (`record` writes it), else the protocol's
+    0..3 (a header without it). A row on another channel is refused: it cannot be replayed or plotted."""
+    if "n_channels" not in meta:
+        return range(MAX_CHANNELS)
+    n = meta_int(meta, "n_channels", path)
+    if not 1 <= n <= MAX_CHANNELS:
+        raise RecordingError(f"{path}: metadata 'n_channels' = {n} out of range [1, {MAX_CHANNELS}]")
+    return range(n)
+
+
+def _words(channels: range) -> str:
+    if len(channels) == 1:
+        return f"it has channel {channels[0]} only"
+    return f"it has channels {channels[0]}..{channels[-1]}"
 
 
 def meta_int(meta: dict, key: str, path="recording") -> int:

@@ -441,6 +441,27 @@ class EmuTcpTransport(Transport):
             pass
 
 
+# the options each simulated device URL takes, and their values (for the error naming them)
+SIM_OPTIONS = {"channels": "1-4", "seed": "a whole number", "frames": "a whole number of frames, then it stops",
+               "realtime": "1|0 (also yes|no, true|false)", "auto": "I0_UA,T0_US,XSTAR_OHM,YSTAR_PC",
+               "mode": "akhtar|fast|open|charge|energy|pwlinear", "board": "real|ideal", "load": "100-1000000 ohm"}
+EMU_OPTIONS = {"scenario": "a scenario name or .csv file", "channels": "1-4", "seed": "a whole number",
+               "auto": "I0_UA,T0_US,XSTAR_OHM,YSTAR_PC", "board": "real|ideal", "load": "100-1000000 ohm"}
+_YES, _NO = ("1", "yes", "true"), ("0", "no", "false")
+
+
+def _known_options(url: str, query: str, accepted: dict[str, str]):
+    """The query's options (parse_qs), or TransportError naming an option the URL does not take (a typo such as
+    chanels=4 was silently ignored) with every accepted option and its values."""
+    q = parse_qs(query, keep_blank_values=True)
+    unknown = [k for k in q if k not in accepted]
+    if unknown:
+        opts = "; ".join(f"{k}={v}" for k, v in accepted.items())
+        raise TransportError(f"bad device URL {url!r}: unknown option{'s' if len(unknown) > 1 else ''} "
+                             f"{', '.join(unknown)}; it takes {opts}")
+    return q
+
+
 def _flag(q, name, default):
     v = q.get(name, [default])[0]
     return v
@@ -474,7 +495,7 @@ def open_transport(url: str, hid_module=None) -> Transport:
             raise TransportError(f"bad device URL {url!r}: use hid://VID:PID[/SERIAL] in hex, e.g. {DEFAULT_URL}") from None
         return HidTransport(vid, pid, serial or None, hid_module)
     if u.scheme == "sim":
-        q = parse_qs(u.query)
+        q = _known_options(url, u.query, SIM_OPTIONS)
         scenario = (u.netloc + u.path) or "steady"
         try:
             channels = int(_flag(q, "channels", "2"))
@@ -483,7 +504,10 @@ def open_transport(url: str, hid_module=None) -> Transport:
         except ValueError:
             raise TransportError(f"bad device URL {url!r}: channels, seed and frames take whole numbers") from None
         load_ohm, board = _board_flags(url, q)
-        realtime = _flag(q, "realtime", "1") not in ("0", "no", "false")
+        realtime = _flag(q, "realtime", "1").lower()
+        if realtime not in _YES + _NO:
+            raise TransportError(f"bad device URL {url!r}: realtime={realtime} is not one of {SIM_OPTIONS['realtime']}")
+        realtime = realtime in _YES
         from .simrun import SimError, scenario_keys
 
         try:
@@ -505,7 +529,7 @@ def open_transport(url: str, hid_module=None) -> Transport:
                                  "e.g. emu+tcp://127.0.0.1:40124")
         return EmuTcpTransport(u.hostname, port)
     if u.scheme == "emu":
-        q = parse_qs(u.query)
+        q = _known_options(url, u.query, EMU_OPTIONS)
         scenario = (u.netloc + u.path).strip("/") or _flag(q, "scenario", "steady")
         try:
             channels = int(_flag(q, "channels", "2"))

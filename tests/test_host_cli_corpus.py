@@ -121,6 +121,10 @@ CASES = [
     (["synth", "--rp-noise", "nan", "--out", "{out}"], "--rp-noise nan out of range"),
     (["synth", "--x-star-ohm", "inf", "--out", "{out}"], "--x-star-ohm inf out of range"),
     (["record", "{out}/r.csv", "--seconds", "nan"], "--seconds nan out of range"),
+    # --seconds 0 is not "forever" (left out, they run until Ctrl-C): refused with the range, before the device
+    *[([cmd, *extra, "--seconds", v], f"--seconds {v} out of range: a number of seconds in (0, 1e9]; leave --seconds "
+       "out to run until Ctrl-C") for cmd, extra in (("record", ["{out}/r.csv"]), ("arm", []), ("monitor", []))
+      for v in ("0", "-1", "inf")],
     (["mode", "akhtar", "--rate-hz", "nan"], "invalid int value"),
     (["arm", "--channel", "9"], "invalid choice"),
 ]
@@ -154,6 +158,15 @@ def test_bad_input_is_one_clear_line_and_no_file(corpus, tmp_path, monkeypatch, 
     assert lines[0].startswith("steadytouch"), err
     assert words in lines[0], err
     assert sorted(p.name for p in out.iterdir()) == [], "an output file was written"
+
+
+def test_seconds_help_says_what_leaving_it_out_does():
+    from steadytouch.cli import build_parser
+
+    subs = build_parser()._subparsers._group_actions[0].choices
+    for name in ("record", "arm", "monitor"):
+        h = " ".join(subs[name].format_help().split())
+        assert "in (0, 1e9] s (left out: until Ctrl-C" in h, name
 
 
 def test_the_good_file_of_the_corpus_is_accepted(corpus, tmp_path, monkeypatch, capsys):
@@ -198,7 +211,9 @@ def test_audit_names_a_recorded_pulse_past_the_cores_limits(corpus, tmp_path, ca
     assert len(err) == 1 and f"big.csv: data row 3: {field}={value} out of range 0.." in err[0], err
 
 
-def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
+def test_an_interrupted_sim_keeps_every_completed_run(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the second mode runs: the first mode's CSV, complete, is kept (it said "-> path" and then
+    "no file written", and the folder was empty); the unfinished run leaves nothing, no temporary file either."""
     import steadytouch.cli as cli
 
     calls = []
@@ -212,18 +227,69 @@ def test_an_interrupted_sim_leaves_no_file(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(cli, "run_firmware", fake_run)
     out = tmp_path / "out"
-    assert main(["sim", "gel-step", "--out", str(out), "--no-plot"]) == 130
-    assert "interrupted" in capsys.readouterr().err
-    assert len(calls) == 2 and list(out.iterdir()) == []  # the first mode's CSV was not left behind
+    assert main(["sim", "gel-step", "--out", str(out)]) == 130
+    std = capsys.readouterr()
+    assert "interrupted" in std.err and len(calls) == 2
+    kept = out / "gel-step-akhtar.csv"
+    assert [p.name for p in out.iterdir()] == [kept.name]  # no open-loop CSV, no figure, no temporary file
+    assert f"-> {kept}" in std.out and "no file for the open run" in std.out
+    assert f"interrupted: kept {kept} (the runs that completed)" in std.out
+    capsys.readouterr()
+    assert main(["audit", str(kept)]) == 0 and "bit-exact" in capsys.readouterr().out  # complete, not cut
 
 
 @pytest.mark.parametrize("url, words", [
     ("sim://steady?channels=9", "--channels=9 out of range [1, 4]"),
     ("sim://steady?channels=x", "channels, seed and frames take whole numbers"),
     ("sim://steady?mode=bogus", "mode is akhtar, fast, open"),
+    # an option the URL does not take (a typo) or a value it does not know was silently ignored
+    ("sim://steady?chanels=4", "unknown option chanels; it takes channels=1-4; seed=a whole number; frames="),
+    ("sim://steady?channels=2&Seed=3&x=1", "unknown options Seed, x; it takes channels=1-4;"),
+    ("sim://steady?realtime=maybe", "realtime=maybe is not one of 1|0 (also yes|no, true|false)"),
+    ("emu://steady?chanels=4", "unknown option chanels; it takes scenario=a scenario name or .csv file; channels=1-4"),
     ("tcp://nowhere", "unknown device"),
 ])
 def test_bad_device_urls_are_one_line(url, words, capsys):
     assert main(["info", "--device", url]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.parametrize("channel", [5, 2])
+def test_audit_and_plot_refuse_a_row_on_a_channel_the_recording_does_not_have(tmp_path, capsys, channel):
+    """A row on a channel the 2-channel recording does not have (an edited or corrupt file) was skipped: a
+    mismatch on it disappeared and audit said bit-exact. Now audit and plot name the line and the channels."""
+    assert main(["sim", "steady", "--mode", "akhtar", "--channels", "2", "--out", str(tmp_path), "--no-plot"]) == 0
+    f = tmp_path / "steady-akhtar.csv"
+    lines = f.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 150
+    cells = lines[k].split(",")
+    cells[13] = str(int(cells[13]) + 1)  # next_i_ua: a mismatch
+    lines[k] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    assert main(["audit", str(f)]) == 1 and "1 MISMATCH" in capsys.readouterr().out
+    cells[2] = str(channel)
+    lines[k] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    for argv in (["audit", str(f)], ["plot", str(f), "--out", str(tmp_path / "x.png")]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"line {k + 1}: channel {channel} is not one of the recording's channels " \
+            "(it has channels 0..1)" in err[0], err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_a_sim_recording_names_the_firmware_version_info_reports(tmp_path, capsys):
+    """`sim`'s CSV header said `firmware: 0.1.0` (the host package's version) while `info --device sim://steady`
+    reports the firmware's own (firmware/stim.py FW_VERSION)."""
+    from steadytouch.device import Device
+    from steadytouch.flash import fw_version
+    from steadytouch.record import read_recording
+    from steadytouch.transport import open_transport
+
+    with open_transport("sim://steady") as t:
+        reported = Device(t).info().firmware
+    assert reported == fw_version()
+    assert main(["sim", "steady", "--mode", "akhtar", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert read_recording(tmp_path / "steady-akhtar.csv")[0]["firmware"] == reported

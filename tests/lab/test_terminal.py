@@ -131,7 +131,8 @@ def test_sim_ctrl_c_interrupts_and_writes_nothing(tmp_path):
     rc, text = t.finish()
     _clean(130, rc, text)
     assert re.search(r"sim akhtar: \d+ pulses on 1 channel\(s\) in [\d.]+ s \(50\.0 Hz per channel\); no stops; "
-                     r"[\d.]+ of 930 s simulated; interrupted: no file written", text), text[-2000:]
+                     r"[\d.]+ of 930 s simulated; interrupted: no file for the akhtar run", text), text[-2000:]
+    assert "interrupted: no run was complete, no file written" in text, text[-2000:]
     assert text.rstrip().endswith("steadytouch: interrupted")
     assert list(tmp_path.iterdir()) == []  # no half-written (or temporary) file
 
