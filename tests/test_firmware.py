@@ -125,14 +125,17 @@ def test_electrode_off_stops_in_the_same_frame_and_stays_stopped(tmp_path):
     reports, res, _ = run_fw(f"""
         s, board, usb, clock = make("{csv}", n=1)
         start(s)
-        s.run(200)                  # off at 1 s, back on at 3 s: stays stopped
+        s.run(190)                  # off at 1 s, back on at 3 s: stays stopped
         b = bytearray(64)
+        disarm = apply(s, hp.cmd_disarm(b, hp.CH_ALL))  # keeps the reason it stopped for
+        s.run(10)
         rearm = apply(s, hp.cmd_arm(b, hp.CH_ALL))
         s.run(20)
         dump(usb)
-        result(pulses=board.pulses, rearm=rearm)
+        result(pulses=board.pulses, rearm=rearm, disarm=disarm)
     """)
     tel = telemetry(reports, 0)
+    assert res[0]["disarm"] == hp.RES_OK  # a DISARM after the stop keeps its reason (review of session 22: was 2)
     off = next(k for k, t in enumerate(tel) if t.stop == hp.STOP_ELECTRODE_OFF)
     # the frame whose pulse met the open electrode reports the stop itself
     assert tel[off].i_ua > 0 and tel[off].vp_mv >= 95_000 and not tel[off].armed
