@@ -432,3 +432,45 @@ def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_i
     clean, bad = [[t.i_ua * t.t_us for t in tel[k * 60:(k + 1) * 60]] for k in (0, 1)]
     assert min(bad[at + 1:at + 3]) < 0.875 * clean[at]  # the wild reading did make a large fall
     assert max(bad) <= max(clean) * 1.005, (max(bad), max(clean), bad[at:at + 12])
+
+
+@pytest.mark.parametrize("mode", [sc.MODE_AKHTAR, sc.MODE_CONSTANT_ENERGY, sc.MODE_FAST])
+def test_audit_replays_calibration_pulses_that_disagree_and_a_rearm_bit_exact(mode):
+    """The host's audit applies the device's calibration rule (hid_protocol.cal_rp0): a first
+    calibration pulse read x 0.5 is sent again, Rp0 comes from the next two; a DISARM in the middle
+    of a later calibration and a re-arm start it anew. Every pulse replays with no mismatch."""
+    from steadytouch.audit import audit
+
+    reports, results, _ = run_fw(f"""
+        s, board, usb, clock = make("steady", n=1)
+        start(s, mode={mode})
+        board.glitch[0] = 0.5
+        s.run(40)
+        b = bytearray(64)
+        assert apply(s, hp.cmd_disarm(b, hp.CH_ALL)) == 0
+        s.run(2)
+        assert apply(s, hp.cmd_arm(b, hp.CH_ALL)) == 0
+        s.run(1)                       # one calibration pulse, then a DISARM in the middle
+        assert apply(s, hp.cmd_disarm(b, hp.CH_ALL)) == 0
+        s.run(2)
+        assert apply(s, hp.cmd_arm(b, hp.CH_ALL)) == 0
+        board.glitch[0] = 1.2
+        s.run(40)
+        dump(usb)
+        result(lim=list(s.lim))
+    """)
+    tel = telemetry(reports, 0)
+    cal = [k for k, t in enumerate(tel) if t.flags & hp.FLAG_CALIBRATING]
+    assert len(cal) == 3 + 1 + 3  # x 0.5 sent again; the pulse before the DISARM; x 1.2 sent again
+    lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), results[0]["lim"]))
+    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
+            "y_star_pc": "186000"}
+    rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
+             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
+            for t in tel]
+    res = audit(meta, rows)
+    assert res.checked >= 80 and res.mismatches == []
+    # the replay rests on the calibration readings: the second pulse read as the first (x 0.5) gives
+    # the pair another Rp0, and the device's choices no longer replay
+    wrong = [dict(r, rp_ohm=rows[cal[0]]["rp_ohm"]) if k == cal[1] else r for k, r in enumerate(rows)]
+    assert audit(meta, wrong).mismatches
