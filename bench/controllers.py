@@ -269,11 +269,11 @@ class Supervisor:
     """The firmware's raise rule (firmware/stim.py, Stimulator._control): a proposal that
     lowers the charge I x T (or keeps it) is sent at once; one that raises it is held one
     pulse (the pulse before is sent again), then the smaller of the two proposals in a row
-    is sent, but within FALL_HOLD pulses of a fall of more than 1/8 not past the pulse before it
+    is sent, but within FALL_HOLD pulses of a fall of more than 1/32 not past the pulse before it
     until that pulse is sent again. The controller is told the pulse sent (Controller.delivered) before each update,
     as the firmware does."""
 
-    FALL_LOG2, FALL_HOLD = 3, 16  # (stim._C_FALL_LOG2, _C_FALL_HOLD)
+    FALL_LOG2, FALL_HOLD = 5, 16  # (stim._C_FALL_LOG2, _C_FALL_HOLD)
 
     def __init__(self, i_ua, t_us):
         self.i_ua, self.t_us = i_ua, t_us  # the pulse to send next
@@ -283,7 +283,7 @@ class Supervisor:
 
     def propose(self, i_ua, t_us):
         """The controller's next pulse (0, 0: stopped); sets the pulse to send. After a fall of
-        more than 1/8 in charge no raise goes past the pulse before it for FALL_HOLD pulses, or
+        more than 1/32 in charge no raise goes past the pulse before it for FALL_HOLD pulses, or
         until it is sent again (readings on it are the two-in-a-row rule's to judge)."""
         if i_ua == 0:
             self.i_ua, self.t_us, self.held, self.f_n = 0, 0, False, 0

@@ -180,16 +180,20 @@ _OFF = const(27)
 _OVL = const(28)  # 1: the board delivers pulses by itself (the Stimulator's _overlap, fixed at set-up)
 _CR = const(29)  # the last calibration pulse's Rp, not yet confirmed (0: none)
 _CN = const(30)  # calibration pulses since arming
-_FI = const(31)  # the pulse sent before the last fall of more than 1/8 in charge (_control) ...
+_FI = const(31)  # the pulse sent before the last fall of more than 1/32 in charge (_control) ...
 _FT = const(32)
 _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: none)
-_NV = const(34)
-# after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before
+_CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SET_MODE takes Rp0
+_CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
+_NV = const(36)
+# after a fall of the charge by more than 1/2**this (1/32: one reading x 1.1 made a fall of 9 %
+# in constant energy and a recovery 3 % past the pulse before it with 1/8, review of session 22),
+# no raise goes past the pulse sent before
 # the fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then
 # the two-in-a-row rule's to judge): one wild reading that made the fall cannot make the
 # recovery overshoot the charge it had (review of session 22: +73 % in constant energy, +10 % in
 # MODE_FAST with a skin model, from one reading; docs/safety.md)
-_C_FALL_LOG2 = const(3)
+_C_FALL_LOG2 = const(5)
 _C_FALL_HOLD = const(16)
 
 
@@ -630,6 +634,7 @@ class Stimulator:
         ~10 us on the chip.)"""
         v = ptr32(c.v)
         if v[_DI] == 0:
+            v[_CR] = 0  # calibration pulses pair only in consecutive frames (as `audit` sees them)
             return
         rp = v[_RP]
         off = v[_OFF]  # (self.vp_off_mv)
@@ -658,6 +663,9 @@ class Stimulator:
                 return
             ctl.calibrate(c.i0, c.t0, rp0, c.x, c.y)
             v[_CALIB] = 0
+            r1 = v[_CR]
+            v[_CLO] = rp if rp < r1 else r1
+            v[_CHI] = r1 + rp - v[_CLO]
             v[_CR] = 0
         else:
             k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us): a held proposal was not what was measured
@@ -933,8 +941,7 @@ class Stimulator:
                     c.ctl.set_mode(self.mode)
                     c.armed = True
                     c.calibrating = True
-                    c.v[_CR] = 0  # (no reading of this arming's calibration pulse yet)
-                    c.v[_CN] = 0
+                    c.v[_CN] = 0  # (_CR: a reading of the frame before pairs, as `audit` pairs them)
                     c.v[_FN] = 0  # (no fall to hold a raise below yet)
                     c.held = False
                     c.stop = hp.STOP_NONE
@@ -953,7 +960,13 @@ class Stimulator:
             self.mode = mode
             k = 0
             while k < self.n:
-                self.chans[k].ctl.set_mode(mode)
+                c = self.chans[k]
+                if c.armed and not c.calibrating and mode != c.ctl.mode:  # Rp0 again from the pair that
+                    # gave it, the one whose law asks less in this mode (review of session 22: Rp0 taken for
+                    # constant energy then used by Eq. 2 let one reading x 0.97 raise every pulse 8.9 %)
+                    c.ctl.calibrate(c.i0, c.t0, hp.cal_rp0(c.v[_CLO], c.v[_CHI], mode == sc.MODE_CONSTANT_ENERGY),
+                                    c.x, c.y)
+                c.ctl.set_mode(mode)
                 k += 1
             if rate:
                 self.set_rate(rate)

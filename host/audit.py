@@ -68,6 +68,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
 def _replay(rows, ctls, cals) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     cal_rp = dict.fromkeys(ctls, 0)  # per channel: the last calibration pulse's Rp not yet confirmed
+    cal_pair = {}  # per channel: the two readings that gave Rp0 (a mode change while armed takes it again)
     for n, r in enumerate(rows, start=1):
         ch = r["channel"]  # one of the recording's channels (read_recording refuses any other)
         if r["i_ua"] == 0:
@@ -78,7 +79,7 @@ def _replay(rows, ctls, cals) -> AuditResult:
             skipped += 1
             continue
         try:
-            done = _step(ctls[ch], r, cals[ch], cal_rp, ch)
+            done = _step(ctls[ch], r, cals[ch], cal_rp, cal_pair, ch)
         except ValueError as e:
             raise ValueError(f"data row {n}: {e}") from None
         if not done:
@@ -93,9 +94,14 @@ def _replay(rows, ctls, cals) -> AuditResult:
     return AuditResult(checked, bad, skipped)
 
 
-def _step(c, r, cal, cal_rp, ch) -> bool:
+def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
     """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet).
-    cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none)."""
+    cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none);
+    cal_pair[ch]: the two readings that gave its Rp0 (the device's stim SET_MODE takes Rp0 again
+    from them, for the new mode, when the mode changes while the channel is armed)."""
+    if not r["flags"] & hp.FLAG_CALIBRATING and c.calibrated and r["mode"] != c.mode and ch in cal_pair:
+        i0, t0, x, y = cal
+        c.calibrate(i0, t0, hp.cal_rp0(*cal_pair[ch], r["mode"] == sc.MODE_CONSTANT_ENERGY), x, y)
     c.set_mode(r["mode"])
     if r["flags"] & hp.FLAG_CALIBRATING:  # (the device's stim._control: Rp0 once two readings agree)
         i0, t0, x, y = cal
@@ -106,6 +112,7 @@ def _step(c, r, cal, cal_rp, ch) -> bool:
             rp0 = hp.cal_rp0(r1, rp, r["mode"] == sc.MODE_CONSTANT_ENERGY)
             if rp0:
                 c.calibrate(i0, t0, rp0, x, y)
+                cal_pair[ch] = (min(r1, rp), max(r1, rp))
             elif r["stop"] == hp.STOP_RP_FAULT:  # readings that never agreed: latched
                 c.stop(sc.ST_UNCALIBRATED)
             else:  # the calibration pulse again

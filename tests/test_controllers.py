@@ -174,23 +174,17 @@ def test_on_the_realistic_board_no_step_surges_after_the_first_correction():
 def test_bench_supervisor_is_the_firmwares_raise_rule():
     """bench.Supervisor as firmware/stim.py's _control: a lower charge at once, a raise held
     one pulse, then the smaller of the two proposals in a row, not past the pulse before a fall
-    of more than 1/8 within 16 pulses of it until that pulse is sent again; a stop at once."""
+    of more than 1/32 within 16 pulses of it until that pulse is sent again; a stop at once."""
     s = bench.Supervisor(1000, 1000)
-    seq = [((900, 1000), (900, 1000)),  # lower: sent at once
-           ((1200, 1000), (900, 1000)),  # raise: held, the pulse before again
+    seq = [((990, 1000), (990, 1000)),  # lower by 1 % (< 1/32): sent at once, no hold after it
+           ((1200, 1000), (990, 1000)),  # raise: held, the pulse before again
            ((1100, 1000), (1100, 1000)),  # second raise in a row: the smaller of the two
-           ((1000, 1300), (1100, 1000)),  # raise: held
-           ((1000, 1000), (1000, 1000)),  # a lower one ends the hold
-           ((1000, 1200), (1000, 1000)),  # held
-           ((1500, 1000), (1000, 1200)),  # the held one is the smaller
-           ((1000, 1000), (1000, 1000)),  # a fall of 1/6: no raise past 1000 x 1200 for 16 pulses
-           ((1100, 1000), (1000, 1000)),  # held (15 left)
-           ((1400, 1000), (1100, 1000)),  # the smaller of two, below the pulse before the fall
-           ((1300, 1000), (1100, 1000))]  # held (13 left)
-    seq += [((1300, 1000), (1000, 1200)),  # capped: the pulse before the fall (12 left)
-            ((1300, 1000), (1000, 1200)),  # back at it: the hold ends; this raise is held
-            ((1300, 1000), (1300, 1000)),  # the smaller of two in a row, both read on that pulse
-            ((0, 0), (0, 0))]  # stopped
+           ((1000, 1000), (1000, 1000)),  # lower by 9 % (> 1/32): at once; no raise past 1100 x 1000 now
+           ((1000, 1300), (1000, 1000)),  # raise: held
+           ((1500, 1000), (1100, 1000)),  # the smaller of two is 1000 x 1300, past the pulse before the fall
+           ((1300, 1000), (1100, 1000)),  # back at that pulse: the hold ends; this raise is held
+           ((1250, 1000), (1250, 1000)),  # the smaller of two in a row, both read on it
+           ((0, 0), (0, 0))]  # stopped
     for prop, sent in seq:
         s.propose(*prop)
         assert (s.i_ua, s.t_us) == sent, (prop, sent)

@@ -410,12 +410,14 @@ def test_calibration_readings_that_never_agree_latch_the_channel():
     (sc.MODE_CONSTANT_ENERGY, 1.6, 10, None),
     (sc.MODE_FAST, 0.6, 3, (500, 36000, 50000)),  # 1.098x at pulse 8
     (sc.MODE_AKHTAR, 0.4, 10, None),  # (a low reading makes the fall where the law asks more with Rp)
-    (sc.MODE_PULSE_WIDTH_LINEAR, 0.4, 10, None)])
+    (sc.MODE_PULSE_WIDTH_LINEAR, 0.4, 10, None),
+    (sc.MODE_CONSTANT_ENERGY, 1.1, 6, None)])  # a fall of 9 %: 1.031x with the hold from 1/8 (second review)
 def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_it(mode, factor, at, skin):
     """One wild reading makes a large fall (sent at once); the genuine readings on the short pulse that
     follows may both ask for more than before, so the two-in-a-row rule alone let the recovery overshoot
-    (review of session 22). After a fall of more than 1/8 no raise goes past the pulse sent before it
-    for stim._C_FALL_HOLD pulses: no pulse of the run carries more than the run without the reading."""
+    (review of session 22). After a fall of more than 1/32 no raise goes past the pulse sent before it
+    for stim._C_FALL_HOLD pulses or until it is sent again: no pulse of the run carries more than the
+    run without the reading."""
     reports, _, _ = run_fw(f"""
         for g in (1.0, {factor!r}):
             s, board, usb, clock = make("steady", n=1)
@@ -430,7 +432,7 @@ def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_i
     """)
     tel = [t for t in reports if isinstance(t, Telemetry)]
     clean, bad = [[t.i_ua * t.t_us for t in tel[k * 60:(k + 1) * 60]] for k in (0, 1)]
-    assert min(bad[at + 1:at + 3]) < 0.875 * clean[at]  # the wild reading did make a large fall
+    assert min(bad[at + 1:at + 3]) < 0.95 * clean[at]  # the wild reading did make a fall
     assert max(bad) <= max(clean) * 1.005, (max(bad), max(clean), bad[at:at + 12])
 
 
@@ -474,3 +476,62 @@ def test_audit_replays_calibration_pulses_that_disagree_and_a_rearm_bit_exact(mo
     # the pair another Rp0, and the device's choices no longer replay
     wrong = [dict(r, rp_ohm=rows[cal[0]]["rp_ohm"]) if k == cal[1] else r for k, r in enumerate(rows)]
     assert audit(meta, wrong).mismatches
+
+
+@pytest.mark.parametrize("cal_mode, mode, factor, at", [
+    (sc.MODE_CONSTANT_ENERGY, sc.MODE_AKHTAR, 0.97, 0),  # second review of session 22: +8.9 % on every pulse
+    (sc.MODE_FAST, sc.MODE_CONSTANT_ENERGY, 1.03, 0),  # +12.1 % on pulse 6
+    (sc.MODE_AKHTAR, sc.MODE_PULSE_WIDTH_LINEAR, 0.97, 1),
+    (sc.MODE_PULSE_WIDTH_LINEAR, sc.MODE_CONSTANT_ENERGY, 1.03, 1)])
+def test_a_mode_change_takes_rp0_again_for_its_own_law(cal_mode, mode, factor, at):
+    """Rp0 is the one of the two agreeing calibration readings whose law asks less; SET_MODE while
+    armed takes it again from the same pair for the new mode's law, so a reading inside the 1/32
+    window can still never raise a pulse (it did by up to 12 % when Rp0 stayed the old mode's)."""
+    reports, _, _ = run_fw(f"""
+        for g in (1.0, {factor!r}):
+            s, board, usb, clock = make("steady", n=1)
+            start(s, mode={cal_mode})
+            if g != 1.0:
+                for k in range({at}):
+                    s.run(1)
+                board.glitch[0] = g
+                s.run(4 - {at})
+            else:
+                s.run(4)
+            assert apply(s, hp.cmd_set_mode(bytearray(64), {mode})) == 0
+            s.run(40)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 44:(k + 1) * 44]] for k in (0, 1)]
+    assert [t.mode for t in tel[40:44]] == [mode] * 4
+    assert max(bad[4:]) <= max(clean[4:]) * 1.005, (max(bad[4:]), max(clean[4:]))
+
+
+def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
+    """Calibration pulses pair when they are in consecutive frames, as audit sees them: a DISARM and
+    an ARM between two frames do not part them (second review of session 22: 57 of 60 pulses were
+    reported as mismatches on a device that worked)."""
+    from steadytouch.audit import audit
+
+    reports, results, _ = run_fw("""
+        s, board, usb, clock = make("steady", n=1)
+        start(s)
+        s.run(1)
+        b = bytearray(64)
+        assert apply(s, hp.cmd_disarm(b, hp.CH_ALL)) == 0
+        assert apply(s, hp.cmd_arm(b, hp.CH_ALL)) == 0
+        s.run(40)
+        dump(usb)
+        result(lim=list(s.lim))
+    """)
+    tel = telemetry(reports, 0)
+    assert sum(1 for t in tel if t.flags & hp.FLAG_CALIBRATING) == 2 and all(t.i_ua for t in tel)
+    lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), results[0]["lim"]))
+    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
+            "y_star_pc": "186000"}
+    rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
+             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
+            for t in tel]
+    res = audit(meta, rows)
+    assert res.checked == len(tel) and res.mismatches == []
