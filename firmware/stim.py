@@ -1103,18 +1103,23 @@ class Stimulator:
 
     def _dac_limits(self, c, dac_ppm):
         # the hard limits on the current (and charge) the board reports it delivers, for a
-        # DAC gain of dac_ppm applied (0: none measured). The board reports code x LSB x gain:
-        # a stored gain below the true one would let the real current past the limits, so the
-        # reported one is held to the limits x that gain; with no gain applied (a fresh board,
-        # a file ignored at boot, a self-test without --scope) the DAC's own error can be up to
-        # the window's edge, so the limits are held to the limits x VMON_DAC_PPM_MIN (docs/safety.md)
+        # DAC gain of dac_ppm applied (0: none measured). The board reports code x LSB x the
+        # stored gain, the physical current is code x LSB x the true gain, which is the host's
+        # word and may be anywhere in the window (a scope reading typed low): the reported one
+        # is held to the limits x stored gain / VMON_DAC_PPM_MAX, so the physical current stays
+        # within the hard limits for any true gain up to the window's top whatever is stored
+        # (the full limits only for a DAC whose stored gain is VMON_DAC_PPM_MAX); with no gain
+        # applied (a fresh board, a file ignored at boot, a self-test without --scope) the
+        # board reports the nominal current, so the limits are held to the limits x
+        # VMON_DAC_PPM_MIN (docs/safety.md). Allocates nothing; products < 2**30.
         hi = self.hard_i
         hq = self.hard_q
-        f = dac_ppm // 100
         if not dac_ppm or not self._dac_applied:  # no gain applied: the board's error is not known ...
             f = 0 if self._dac_exact else hp.VMON_DAC_PPM_MIN // 100  # ... unless it has none (the full limits)
+        else:  # per 10 000, rounded down: (dac_ppm // 100) * 10000 <= 103 500 000
+            f = (dac_ppm // 100) * 10000 // (hp.VMON_DAC_PPM_MAX // 100)
         if 0 < f < 10000:
-            hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 11000
+            hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 10000
             hq = (hq // 10000) * f + (hq % 10000) * f // 10000
         c.hard_i_d = hi
         c.hard_q_d = hq
