@@ -808,7 +808,7 @@ class Stimulator:
         b[hp.O_FW + 2] = FW_VERSION[2]
         b[hp.O_FW + 3] = self.n
         # the hard current and charge limits in force: held below the board's nominal ones while
-        # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (held_limit)
+        # a channel has no DAC gain applied (INFO_FLAG_HELD), x gain / VMON_DAC_PPM_MAX where one is (held_limit)
         hp.put_u16(b, hp.O_HARD_T, self.hard_t)
         hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
         lim = self.lim
@@ -843,7 +843,7 @@ class Stimulator:
         if self.no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
             f |= hp.INFO_FLAG_HELD
         elif self.held_limit(0) < self.hard_i or self.held_limit(1) < self.hard_q:
-            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below 1 applied on a channel
+            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below VMON_DAC_PPM_MAX (/ the max) on a channel
         b[hp.O_INFO_FLAGS] = f
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
@@ -1127,7 +1127,7 @@ class Stimulator:
     def held_limit(self, q):
         """The held hard limit on the current (q 0, uA) or the charge (q 1, pC): the lowest
         a channel may report delivering (_dac_limits: the hard limits x VMON_DAC_PPM_MIN while
-        a channel has no DAC gain applied, x a gain below 1 while one is). The limit in force
+        a channel has no DAC gain applied, x its gain / VMON_DAC_PPM_MAX while one is). The limit in force
         for every controller: SET_LIMITS refuses above it, _fit_limits lowers the soft limits
         to it, GET_INFO reports it. Allocates nothing."""
         k = 0
@@ -1142,13 +1142,14 @@ class Stimulator:
 
     def takes_dac_gain(self):
         """The board's DAC path applies a stored DAC gain (GET_INFO's INFO_FLAG_DAC_GAIN): only
-        then does `selftest --scope` lift a hold."""
+        then does `selftest --scope` lift a hold (to the hard limits x gain / VMON_DAC_PPM_MAX)."""
         return bool(self._dac_applied)
 
     def no_dac_gain(self):
         """True while some channel's limits are held for want of a DAC gain (_dac_limits: none
         applied, on a board whose current is not exactly the commanded one): GET_INFO's
-        INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it."""
+        INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it (the limits are then
+        the hard limits x the lowest gain / VMON_DAC_PPM_MAX: INFO_FLAG_DAC_LOW below the max)."""
         if self._dac_exact:
             return False
         if not self._dac_applied:
