@@ -202,7 +202,8 @@ def auto_refused(s, cmd, res, detail, i0, t0, x, y):
     why = ""
     if held and s.takes_dac_gain():
         why = (" (its hard limits are held at %d uA, %d pC: no DAC gain was measured; the board's own are %d uA, "
-               "%d pC; `steadytouch selftest --load-ohm OHMS --scope` measures it and lifts the hold)"
+               "%d pC; `steadytouch selftest --load-ohm OHMS --scope` measures it and lifts the hold: the limits are then "
+               "the board's own x the gain / 1.035)"
                % (s.held_limit(0), s.held_limit(1), s.hard_i, s.hard_q))
     elif held:
         why = (" (its hard limits are held at %d uA, %d pC: no DAC gain is applied, this board's DAC path "

@@ -816,7 +816,7 @@ class Stimulator:
         b[hp.O_FW + 2] = FW_VERSION[2]
         b[hp.O_FW + 3] = self.n
         # the hard current and charge limits in force: held below the board's nominal ones while
-        # a channel has no DAC gain applied (INFO_FLAG_HELD) or one below 1 (held_limit)
+        # a channel has no DAC gain applied (INFO_FLAG_HELD), x gain / VMON_DAC_PPM_MAX where one is (held_limit)
         hp.put_u16(b, hp.O_HARD_T, self.hard_t)
         hp.put_i32(b, hp.O_COMPLIANCE, self.compliance_mv)
         lim = self.lim
@@ -851,7 +851,7 @@ class Stimulator:
         if self.no_dac_gain():  # the hard fields above are held x VMON_DAC_PPM_MIN
             f |= hp.INFO_FLAG_HELD
         elif self.held_limit(0) < self.hard_i or self.held_limit(1) < self.hard_q:
-            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below 1 applied on a channel
+            f |= hp.INFO_FLAG_DAC_LOW  # ... lowered x a DAC gain below VMON_DAC_PPM_MAX (/ the max) on a channel
         b[hp.O_INFO_FLAGS] = f
         self.acks = (self.acks + 1) & 0x3FFFFFFF
         return hp.RES_OK
@@ -1116,18 +1116,23 @@ class Stimulator:
 
     def _dac_limits(self, c, dac_ppm):
         # the hard limits on the current (and charge) the board reports it delivers, for a
-        # DAC gain of dac_ppm applied (0: none measured). The board reports code x LSB x gain:
-        # a stored gain below the true one would let the real current past the limits, so the
-        # reported one is held to the limits x that gain; with no gain applied (a fresh board,
-        # a file ignored at boot, a self-test without --scope) the DAC's own error can be up to
-        # the window's edge, so the limits are held to the limits x VMON_DAC_PPM_MIN (docs/safety.md)
+        # DAC gain of dac_ppm applied (0: none measured). The board reports code x LSB x the
+        # stored gain, the physical current is code x LSB x the true gain, which is the host's
+        # word and may be anywhere in the window (a scope reading typed low): the reported one
+        # is held to the limits x stored gain / VMON_DAC_PPM_MAX, so the physical current stays
+        # within the hard limits for any true gain up to the window's top whatever is stored
+        # (the full limits only for a DAC whose stored gain is VMON_DAC_PPM_MAX); with no gain
+        # applied (a fresh board, a file ignored at boot, a self-test without --scope) the
+        # board reports the nominal current, so the limits are held to the limits x
+        # VMON_DAC_PPM_MIN (docs/safety.md). Allocates nothing; products < 2**30.
         hi = self.hard_i
         hq = self.hard_q
-        f = dac_ppm // 100
         if not dac_ppm or not self._dac_applied:  # no gain applied: the board's error is not known ...
             f = 0 if self._dac_exact else hp.VMON_DAC_PPM_MIN // 100  # ... unless it has none (the full limits)
+        else:  # per 10 000, rounded down: (dac_ppm // 100) * 10000 <= 103 500 000
+            f = (dac_ppm // 100) * 10000 // (hp.VMON_DAC_PPM_MAX // 100)
         if 0 < f < 10000:
-            hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 11000
+            hi = hi * f // 10000  # products < 2**30: hard_i <= 2**16, f <= 10000
             hq = (hq // 10000) * f + (hq % 10000) * f // 10000
         c.hard_i_d = hi
         c.hard_q_d = hq
@@ -1135,7 +1140,7 @@ class Stimulator:
     def held_limit(self, q):
         """The held hard limit on the current (q 0, uA) or the charge (q 1, pC): the lowest
         a channel may report delivering (_dac_limits: the hard limits x VMON_DAC_PPM_MIN while
-        a channel has no DAC gain applied, x a gain below 1 while one is). The limit in force
+        a channel has no DAC gain applied, x its gain / VMON_DAC_PPM_MAX while one is). The limit in force
         for every controller: SET_LIMITS refuses above it, _fit_limits lowers the soft limits
         to it, GET_INFO reports it. Allocates nothing."""
         k = 0
@@ -1150,13 +1155,14 @@ class Stimulator:
 
     def takes_dac_gain(self):
         """The board's DAC path applies a stored DAC gain (GET_INFO's INFO_FLAG_DAC_GAIN): only
-        then does `selftest --scope` lift a hold."""
+        then does `selftest --scope` lift a hold (to the hard limits x gain / VMON_DAC_PPM_MAX)."""
         return bool(self._dac_applied)
 
     def no_dac_gain(self):
         """True while some channel's limits are held for want of a DAC gain (_dac_limits: none
         applied, on a board whose current is not exactly the commanded one): GET_INFO's
-        INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it."""
+        INFO_FLAG_HELD. `selftest --scope` storing every channel's gain lifts it (the limits are then
+        the hard limits x the lowest gain / VMON_DAC_PPM_MAX: INFO_FLAG_DAC_LOW below the max)."""
         if self._dac_exact:
             return False
         if not self._dac_applied:

@@ -225,10 +225,11 @@ def cmd_info(a) -> int:
             say(f"  held: {held_reason(i.dac_gain_applied, i.nominal)}")
         elif i.dac_low:
             low = [f"ch{ch} {c.dac_gain_ppm / 1e6:.4f}" for ch in range(i.n_channels)
-                   for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < 1000000]
+                   for c in [d.calibration(ch)] if 0 < c.dac_gain_ppm < hp.VMON_DAC_PPM_MAX]
             mine = "; the board's own: I {} uA, Q {} pC".format(*i.nominal) if i.nominal else ""
-            say(f"  lowered: the board's own limits x the DAC gain below 1 measured ({', '.join(low)}): the current "
-                f"it reports is the delivered one{mine}")
+            say(f"  lowered: the board's own limits x the lowest DAC gain measured / {hp.VMON_DAC_PPM_MAX / 1e6:g} "
+                f"({', '.join(low)}): the current delivered stays within the board's own whatever the DAC's true "
+                f"gain in its window{mine}")
         if (i.held or i.dac_low) and own is None:
             say(f"  firmware {i.firmware} does not report the board's own limits beside the lowered ones (GET_INFO "
                 f"page 1, firmware {'.'.join(map(str, FW_OWN_LIMITS))} on): `steadytouch flash` updates it")

@@ -169,8 +169,8 @@ class Info:
 
     @property
     def dac_low(self) -> bool:
-        """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits by a DAC gain below 1
-        applied on a channel (INFO_FLAG_DAC_LOW; firmware before it: never set)."""
+        """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits x the DAC gain applied on
+        a channel / VMON_DAC_PPM_MAX (every channel has one; INFO_FLAG_DAC_LOW; firmware before it: never set)."""
         return bool(self.flags & hp.INFO_FLAG_DAC_LOW)
 
     def lowered_reason(self) -> str:
@@ -189,8 +189,9 @@ HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held b
 
 FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
 FW_OWN_LIMITS = (0, 3, 0)  # the first released with GET_INFO page 1, the board's own limits (Device.own_limits)
-DAC_LOW_REASON = ("its hard limits are the board's own x the DAC gain below 1 measured on a channel (the current it "
-                  "reports is the delivered one; `steadytouch info` shows each channel's DAC gain)")
+DAC_LOW_REASON = ("its hard limits are the board's own x the lowest DAC gain measured / {:g} (the top of the gain's "
+                  "window: the current delivered stays within the board's own whatever the DAC's true gain; "
+                  "`steadytouch info` shows each channel's DAC gain)").format(hp.VMON_DAC_PPM_MAX / 1e6)
 
 
 def held_reason(takes_dac_gain: bool = True, nominal: tuple[int, int] | None = None) -> str:
@@ -202,7 +203,8 @@ def held_reason(takes_dac_gain: bool = True, nominal: tuple[int, int] | None = N
         return (f"its hard limits are held {HELD_PCT:g} % below {own} because no DAC gain is applied "
                 "(this board's DAC path takes none: the hold stays)")
     return (f"its hard limits are held {HELD_PCT:g} % below {own} because no DAC gain was measured "
-            "(run `steadytouch selftest --load-ohm OHMS --scope` to measure it and lift the hold)")
+            "(run `steadytouch selftest --load-ohm OHMS --scope` to measure it and lift the hold: the limits are then "
+            f"the board's own x the gain measured / {hp.VMON_DAC_PPM_MAX / 1e6:g})")
 
 
 @dataclass(frozen=True)

@@ -298,7 +298,8 @@ def restore_limits(d, before, say, stored: bool = True) -> None:
     self-test switches the correction off in RAM while it measures, which holds the hard limits, and the
     firmware lowers the soft ones in force to them and never raises them by itself. The soft limits wanted
     are the ones as set (GET_INFO page 1: a user's SET_LIMITS, or board_config's at boot), capped at the hard
-    limits in force now: a limit the hold had lowered comes back once a stored DAC gain lifts the hold,
+    limits in force now: a limit the hold had lowered comes back, up to the hard limits x the stored DAC gain /
+    1.035 (VMON_DAC_PPM_MAX), once a stored DAC gain lifts the hold,
     and one a user set at the held value stays there (page 1 tells the two apart; page 0 cannot). Firmware
     before page 1: `before`'s limits, capped, never raised above them (the safe side), and one line says so
     when the hold was lifted. A self-test that stored nothing (`stored` False: stopped, failed, or run without

@@ -245,11 +245,13 @@ O_INFO_VMON = const(60)  # u8 VMON_NONE / LOADED / BAD / STORED
 O_INFO_FLAGS = const(61)  # u8 board flags (0 from firmware before it): INFO_FLAG_*
 INFO_FLAG_DAC_GAIN = const(0x01)  # the board's DAC path applies a stored DAC gain (else stored, not applied)
 # O_HARD_I / O_HARD_Q are the limits in force: held to the board's nominal ones x VMON_DAC_PPM_MIN
-# while a channel has no DAC gain applied (this flag; a self-test with --scope lifts it), x a DAC
-# gain below 1 where one is applied. SET_LIMITS accepts up to them (docs/protocol.md).
+# while a channel has no DAC gain applied (this flag; a self-test with --scope lifts it), x the DAC
+# gain / VMON_DAC_PPM_MAX where one is applied (the physical current then stays within the nominal
+# ones whatever the true gain in the window). SET_LIMITS accepts up to them (docs/protocol.md).
 INFO_FLAG_HELD = const(0x02)
-# O_HARD_I / O_HARD_Q lowered below the board's nominal ones x a DAC gain below 1 applied on a
-# channel (not held: every channel has its gain; REP_CAL's O_CAL_DAC_GAIN says which)
+# O_HARD_I / O_HARD_Q lowered below the board's nominal ones x a DAC gain below VMON_DAC_PPM_MAX
+# applied on a channel / VMON_DAC_PPM_MAX (not held: every channel has its gain; REP_CAL's
+# O_CAL_DAC_GAIN says which)
 INFO_FLAG_DAC_LOW = const(0x04)
 # (other bits: for later firmware; a host ignores bits it does not know)
 # GET_INFO (CH_ALL) with O_ARG = INFO_PAGE_OWN asks for the board's own limits: the same

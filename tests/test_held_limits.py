@@ -21,6 +21,19 @@ EXE = str(Path(sys.executable).parent / "steadytouch")
 HARD_I, HARD_Q = 10000, 10_000_000  # board_config's nominal hard limits (checked below against the device)
 HELD_I, HELD_Q = HARD_I * hp.VMON_DAC_PPM_MIN // 1000000, HARD_Q * hp.VMON_DAC_PPM_MIN // 1000000
 
+
+def dac_held(x, gain_ppm):
+    """The hard limit x (uA or pC) held for a stored DAC gain (stim._dac_limits): x gain / VMON_DAC_PPM_MAX, rounded
+    down per 10 000, so the physical current stays within x for any true gain in the window (review of session 22:
+    the full limits at a gain >= 1 let 10 058 uA through on a DAC whose true gain is 1.006)."""
+    f = (gain_ppm // 100) * 10000 // (hp.VMON_DAC_PPM_MAX // 100)
+    h = x * f // 10000
+    assert x * gain_ppm / hp.VMON_DAC_PPM_MAX - x / 5000 <= h <= x * gain_ppm / hp.VMON_DAC_PPM_MAX
+    return h
+
+
+LOW_I, LOW_Q = dac_held(HARD_I, 1000000), dac_held(HARD_Q, 1000000)  # a DAC gain of 1.000 stored: 9661 uA, 9.661 uC
+
 SETUP = """
 def board(ideal=False, flash=None, n=2):
     clock = VirtualClock(0)
@@ -59,7 +72,8 @@ def _ack(hexrep):
 
 def test_boot_without_a_dac_gain_holds_the_soft_limits_and_get_info_reports_the_held_limits(tmp_path):
     """Boot: a fresh realistic board, one whose file has a DAC gain on one channel only, and the ideal board
-    (its current exactly the commanded one) and a realistic one whose file has a gain on every channel."""
+    (its current exactly the commanded one) and a realistic one whose file has a gain on every channel (not held:
+    lowered to the hard limits x the lowest gain / VMON_DAC_PPM_MAX, INFO_FLAG_DAC_LOW)."""
     one, every = tmp_path / "one", tmp_path / "every"
     one.mkdir()
     every.mkdir()
@@ -76,15 +90,17 @@ result(**out)
     r = res[0]
     for name in ("fresh", "one gain", "ideal", "every gain"):
         assert r[name][2:4] == [HARD_I, HARD_Q], name  # the board's nominal limits (board_config)
-    for name, held in (("fresh", True), ("one gain", True), ("ideal", False), ("every gain", False)):
+    for name, held, want_i, want_q in (("fresh", True, HELD_I, HELD_Q), ("one gain", True, HELD_I, HELD_Q),
+                                       ("ideal", False, HARD_I, HARD_Q), ("every gain", False, LOW_I, LOW_Q)):
         (lim, ctl, _cal, hard_d), info_hex, _, _, _ = r[name]
         i = _info(info_hex)
-        want_i, want_q = (HELD_I, HELD_Q) if held else (HARD_I, HARD_Q)
         assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (want_i, want_q, held), name
+        assert i.dac_low == (name == "every gain"), name  # lowered x the gain / 1.035, said so
         assert i.hard_t_max_us == 8000  # the width limit is not held
         assert (lim[1], lim[4]) == (want_i, want_q) == (i.i_max_ua, i.q_max_pc), (name, lim)  # boot soft = held
         assert all(c[1] == want_i and c[4] == want_q for c in ctl), (name, ctl)  # every controller has them
         assert min(h[0] for h in hard_d) == want_i
+    assert r["every gain"][0][3] == [[LOW_I, LOW_Q], [dac_held(HARD_I, 1006000), dac_held(HARD_Q, 1006000)]]
     assert _info(r["ideal"][1]).dac_gain_applied is False and _info(r["fresh"][1]).dac_gain_applied is True
     assert r["one gain"][4] == r["every gain"][4] == hp.VMON_LOADED
 
@@ -118,10 +134,11 @@ result(pre=pre, before=before, after=after, refused=refused, ok=ok, at=limits(s)
     assert r["at"][0] == [100, HELD_I, 50, 4000, HELD_Q] and r["at"][2] == [True, True]
 
 
-def test_a_stored_dac_gain_lets_set_limits_reach_the_full_hard_limit_and_a_removed_one_lowers_them(tmp_path):
-    """A DAC gain stored on every channel (VMON_STORE, heap-locked) lifts the hold: GET_INFO reports the full
-    limits, the soft ones stay where they were until SET_LIMITS raises them (up to the full limit, accepted),
-    a pulse at the full hard current is delivered; the next boot starts at the full limits. A gain removed
+def test_a_stored_dac_gain_lets_set_limits_reach_the_limit_it_holds_and_a_removed_one_lowers_them(tmp_path):
+    """A DAC gain stored on every channel (VMON_STORE, heap-locked) lifts the hold: GET_INFO reports the hard limits
+    x that gain / VMON_DAC_PPM_MAX (1.000 stored: 9661 uA; the full limits only at 1.035, review of session 22), the
+    soft ones stay where they were until SET_LIMITS raises them (up to that limit, accepted; one above it refused),
+    a pulse there is delivered, its physical current within the hard limit; the next boot starts there. A gain removed
     again (VMON_APPLY, heap-locked) lowers the soft limits at once, every controller's with them, and drops
     only the calibrations above them."""
     d = str(tmp_path)
@@ -132,9 +149,11 @@ r = {{}}
 r["store"] = framed(s, hp.cmd_set_vmon_all(b, hp.VMON_STORE, [(0, 0, 1000000)] * 3))
 r["stored"] = limits(s)
 r["info"] = framed(s, hp.cmd_get_info(b))
-r["acks"] = [framed(s, hp.cmd_set_limits(b, 100, s.hard_i, 50, 4000, s.hard_q)),
+r["above"] = [framed(s, hp.cmd_set_limits(b, 100, s.hard_i, 50, 4000, s.held_limit(1))),
+              framed(s, hp.cmd_set_limits(b, 100, s.held_limit(0), 50, 4000, s.held_limit(1) + 1))]
+r["acks"] = [framed(s, hp.cmd_set_limits(b, 100, s.held_limit(0), 50, 4000, s.held_limit(1))),
              framed(s, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
-             framed(s, hp.cmd_calibrate(b, 0, s.hard_i, 1000, -1670, 0)),
+             framed(s, hp.cmd_calibrate(b, 0, s.held_limit(0), 1000, -1670, 0)),
              framed(s, hp.cmd_calibrate(b, 1, 3000, 1000, -1670, 0)),
              framed(s, hp.cmd_calibrate(b, 2, 3000, 1000, -1670, 0)),
              framed(s, hp.cmd_arm(b, hp.CH_ALL))]
@@ -153,25 +172,27 @@ result(**r)
     r = res[0]
     assert _ack(r["store"]) == (hp.CMD_SET_VMON, hp.RES_OK, 0)
     assert r["stored"][0][1] == HELD_I and r["stored"][0][4] == HELD_Q  # not raised by the store itself
-    assert [h for h in r["stored"][3]] == [[HARD_I, HARD_Q]] * 3  # the hold is lifted on every channel
+    assert [h for h in r["stored"][3]] == [[LOW_I, LOW_Q]] * 3  # the hold is lifted on every channel: x 1 / 1.035
     i = _info(r["info"])
-    assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.i_max_ua) == (HARD_I, HARD_Q, False, HELD_I)
+    assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.dac_low, i.i_max_ua) == (LOW_I, LOW_Q, False, True, HELD_I)
+    assert [_ack(a) for a in r["above"]] == [(hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2),
+                                             (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 8)]
     assert [_ack(a)[1] for a in r["acks"]] == [hp.RES_OK] * 7
-    assert r["raised"][0] == [100, HARD_I, 50, 4000, HARD_Q]
+    assert r["raised"][0] == [100, LOW_I, 50, 4000, LOW_Q]
     for stop, di, phys in r["pulses"]:
-        assert stop == hp.STOP_NONE and 0 < di <= HARD_I, r["pulses"]
-    assert HARD_I - 5 <= r["pulses"][0][1]  # ch0 at the full hard current (the DAC rounds down)
+        assert stop == hp.STOP_NONE and 0 < di <= LOW_I and phys <= HARD_I, r["pulses"]
+    assert LOW_I - 5 <= r["pulses"][0][1]  # ch0 at the limit in force (the DAC rounds down)
     # ch2's gain removed: the soft limits follow its held limit down, ch0's calibration at 10000 uA is dropped,
     # ch1's at 3000 uA kept (ch2's is dropped by its gain change itself: the same code is another current)
     assert _ack(r["removed"]) == (hp.CMD_SET_VMON, hp.RES_OK, 0)
     lim, ctl, cal, hard_d = r["lowered"]
     assert lim == [100, HELD_I, 50, 4000, HELD_Q] and all(c == lim for c in ctl)
-    assert hard_d == [[HARD_I, HARD_Q], [HARD_I, HARD_Q], [HELD_I, HELD_Q]]
+    assert hard_d == [[LOW_I, LOW_Q], [LOW_I, LOW_Q], [HELD_I, HELD_Q]]
     assert cal == [False, True, False]
     i = _info(r["info2"])
     assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.i_max_ua, i.q_max_pc) == (HELD_I, HELD_Q, True, HELD_I, HELD_Q)
     assert [_ack(a)[1] for a in r["arm"]] == [hp.RES_NOT_CALIBRATED, hp.RES_OK, hp.RES_NOT_CALIBRATED]
-    assert r["boot"][0][1] == HARD_I and r["boot"][0][4] == HARD_Q  # boots with every gain applied: the full limits
+    assert r["boot"][0][1] == LOW_I and r["boot"][0][4] == LOW_Q  # boots with every gain applied: x 1 / 1.035
 
 
 def run_cli(*args, env=None):
@@ -235,7 +256,7 @@ def test_the_host_refuses_above_the_held_limit_ahead_with_the_reason(tmp_path):
 def test_the_host_forgets_the_hard_limits_after_a_set_vmon():
     """Device.limits reads GET_INFO when it does not know the hard limits in force, and again after a SET_VMON
     (which may lift or bring back the hold): a gain applied on every channel of the realistic sim:// lets
-    SET_LIMITS reach the full hard limit from the host."""
+    SET_LIMITS reach the limit that gain holds (the hard limits x gain / 1.035) from the host, not above it."""
     from steadytouch.device import Device
     from steadytouch.protocol import CommandError
     from steadytouch.transport import open_transport
@@ -248,9 +269,11 @@ def test_the_host_forgets_the_hard_limits_after_a_set_vmon():
             d.limits(500, HARD_I, 100, 4000, 5_000_000)
         d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])
         assert d.cmds.hard is None
-        assert d.limits(500, HARD_I, 100, 4000, HARD_Q).ok
+        assert d.limits(500, LOW_I, 100, 4000, LOW_Q).ok
+        with pytest.raises(CommandError, match=f"i_max_ua={LOW_I + 1} out of range: the device accepts 1..{LOW_I} uA"):
+            d.limits(500, LOW_I + 1, 100, 4000, LOW_Q)
         i = d.info()
-        assert (i.hard_i_max_ua, i.held, i.i_max_ua, i.q_max_pc) == (HARD_I, False, HARD_I, HARD_Q)
+        assert (i.hard_i_max_ua, i.held, i.dac_low, i.i_max_ua, i.q_max_pc) == (LOW_I, False, True, LOW_I, LOW_Q)
 
 
 def test_a_refusal_names_the_value_and_the_range_and_the_hold_only_when_it_is_the_cause(tmp_path):
@@ -283,11 +306,12 @@ def test_a_refusal_names_the_value_and_the_range_and_the_hold_only_when_it_is_th
         assert "0x12" not in err[0]
 
 
-def test_a_dac_gain_below_1_lowers_the_limits_only_where_it_is_applied_and_the_host_says_why(tmp_path):
+def test_a_dac_gain_lowers_the_limits_only_where_it_is_applied_and_the_host_says_why(tmp_path):
     """A stored DAC gain of 0.98 on ch0: the ideal board (its current exactly the commanded one; the gain is
     stored, not applied) keeps the full limits (was: 9800 uA / 9.8 uC, against the docs and `info`'s "stored,
-    not applied"); the realistic board applies it, its hard limits are x 0.98, and `info` and the `limits`
-    refusal say that reason (GET_INFO's INFO_FLAG_DAC_LOW), not the hold."""
+    not applied"); the realistic board applies it, its hard limits are x 0.98 / 1.035 (the lowest gain over the
+    window's top: 9468 uA), and `info` and the `limits` refusal say that reason (GET_INFO's INFO_FLAG_DAC_LOW),
+    not the hold."""
     import os
 
     (tmp_path / "vmon_cal.txt").write_text("steadytouch monitor correction v1\n0 0 0 980000\n1 0 0 1000000\n")
@@ -300,16 +324,18 @@ def test_a_dac_gain_below_1_lowers_the_limits_only_where_it_is_applied_and_the_h
     p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", str(HARD_I), "--t-min-us", "100", "--t-max-us", "4000",
                 "--q-max-pc", str(HARD_Q), "--device", url + "&board=ideal", env=env)
     assert p.returncode == 0 and "limits: ok" in p.stdout, p.stderr
+    lo_i, lo_q = dac_held(HARD_I, 980000), dac_held(HARD_Q, 980000)
+    assert (lo_i, lo_q) == (9468, 9468000)
     p = run_cli("info", "--device", url, env=env)
-    assert p.returncode == 0 and "hard limits: I <= 9800 uA, T <= 8000 us, Q <= 9800000 pC" in p.stdout, p.stdout
-    assert "(lowered)" in p.stdout and "lowered: the board's own limits x the DAC gain below 1 measured (ch0 0.9800)" \
-        in p.stdout and "held" not in p.stdout, p.stdout
-    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", "9900", "--t-min-us", "100", "--t-max-us", "4000",
+    assert p.returncode == 0 and f"hard limits: I <= {lo_i} uA, T <= 8000 us, Q <= {lo_q} pC" in p.stdout, p.stdout
+    assert "(lowered)" in p.stdout and ("lowered: the board's own limits x the lowest DAC gain measured / 1.035 (ch0 "
+                                        "0.9800, ch1 1.0000)") in p.stdout and "held" not in p.stdout, p.stdout
+    p = run_cli("limits", "--i-min-ua", "500", "--i-max-ua", str(lo_i + 1), "--t-min-us", "100", "--t-max-us", "4000",
                 "--q-max-pc", "5000000", "--device", url, env=env)
     err = p.stderr.strip().splitlines()
     assert p.returncode == 2 and len(err) == 1, p.stderr
-    assert ("i_max_ua=9900 out of range: the device accepts 1..9800 uA: its hard limits are the board's own x the DAC "
-            "gain below 1") in err[0] and "no DAC gain" not in err[0], err
+    assert (f"i_max_ua={lo_i + 1} out of range: the device accepts 1..{lo_i} uA: its hard limits are the board's own x "
+            "the lowest DAC gain measured / 1.035") in err[0] and "no DAC gain" not in err[0], err
 
 
 def test_a_limits_refused_by_the_host_sends_nothing_and_changes_nothing():
@@ -393,7 +419,8 @@ r["same"] = limits(s) == before
 r["set"] = framed(s, hp.cmd_set_limits(b, 400, 9000, 50, 4000, 9000000))
 r["p1_set"] = framed(s, hp.cmd_get_info(b, 4, hp.CH_ALL, hp.INFO_PAGE_OWN))
 r["gain"] = framed(s, hp.cmd_set_vmon_all(b, hp.VMON_APPLY, [(0, 0, 1000000), (0, 0, 1000000)]))
-r["full"] = framed(s, hp.cmd_set_limits(b, 400, 10000, 50, 4000, 10000000))
+r["above"] = framed(s, hp.cmd_set_limits(b, 400, 10000, 50, 4000, 10000000))  # above the gain's limit: refused
+r["full"] = framed(s, hp.cmd_set_limits(b, 400, s.held_limit(0), 50, 4000, s.held_limit(1)))
 r["drop"] = framed(s, hp.cmd_set_vmon(b, 1, hp.VMON_APPLY, 0, 0))  # ch1's gain removed: held, lowered
 r["p0_low"] = framed(s, hp.cmd_get_info(b, 5))
 r["p1_low"] = framed(s, hp.cmd_get_info(b, 6, hp.CH_ALL, hp.INFO_PAGE_OWN))
@@ -410,10 +437,10 @@ result(**r)
     assert _ack(r["set"])[1] == hp.RES_OK
     p1 = _info(r["p1_set"])
     assert (p1.i_min_ua, p1.i_max_ua, p1.q_max_pc, p1.hard_i_max_ua) == (400, 9000, 9_000_000, HARD_I)
-    assert [_ack(r[k])[1] for k in ("gain", "full", "drop")] == [hp.RES_OK] * 3
+    assert [_ack(r[k])[1] for k in ("gain", "above", "full", "drop")] == [hp.RES_OK, hp.RES_OUT_OF_RANGE] + [hp.RES_OK] * 2
     low, own = _info(r["p0_low"]), _info(r["p1_low"])
     assert (low.held, low.i_max_ua, low.q_max_pc) == (True, HELD_I, HELD_Q)  # lowered in force ...
-    assert (own.i_min_ua, own.i_max_ua, own.q_max_pc) == (400, HARD_I, HARD_Q)  # ... as set: kept
+    assert (own.i_min_ua, own.i_max_ua, own.q_max_pc) == (400, LOW_I, LOW_Q)  # ... as set: kept
 
 
 class _OldFirmware:

@@ -14,6 +14,7 @@ from conftest import FIRMWARE, ROOT
 
 sys.path.insert(0, str(FIRMWARE))
 import board_sim  # noqa: E402
+import hid_protocol as hp  # noqa: E402
 
 from steadytouch import selftest as st  # noqa: E402
 
@@ -495,34 +496,45 @@ def _soft(i):
 def test_selftest_gives_back_the_soft_limits_it_found(tmp_path, monkeypatch, store):
     """The self-test switches the correction off in RAM while it measures, which holds the limits (the firmware
     lowers the soft ones to 9650 uA / 9.65 uC); afterwards the soft limits the board had are set again (were:
-    stuck at the held values until a reset, a calibration at 9800 uA refused)."""
+    stuck at the held values until a reset, a calibration at 9800 uA refused). With a DAC gain of 1.000 on both
+    channels the hard limits in force are 10000 uA x 1 / 1.035 = 9661 uA (docs/safety.md): set there."""
+    from test_held_limits import dac_held
+
     import sensation_core as sc
     from steadytouch.device import Device
     from steadytouch.transport import open_transport
 
-    (tmp_path / "vmon_cal.txt").write_text(GAIN_1)  # DAC gain 1.0 on both channels: not held
+    (tmp_path / "vmon_cal.txt").write_text(GAIN_1)  # DAC gain 1.0 on both channels: not held (x 1 / 1.035)
     monkeypatch.setenv("STEADYTOUCH_SIM_FLASH", str(tmp_path))
     url = "sim://steady?load=10000"
+    hi, hq = dac_held(10000, 1000000), dac_held(10_000_000, 1000000)
+    assert (hi, hq) == (9661, 9_661_000)  # above the held 9650 uA / 9.65 uC
     said = []
     with open_transport(url) as t:
         d = Device(t)
-        assert d.limits(500, 9800, 100, 4000, 9_800_000).ok
+        assert d.limits(500, hi, 100, 4000, hq).ok
         before = _soft(d.info())
         assert st.run(url, 10000, None, 4, store, None, said.append, _first_is(t)) == 0
         i = d.info()
-        assert (i.hard_i_max_ua, i.held) == (10000, False)
-        assert _soft(i) == before == (500, 9800, 100, 4000, 9_800_000)
+        assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (hi, hq, False)
+        assert _soft(i) == before == (500, hi, 100, 4000, hq)
         d.mode(sc.MODE_OPEN_LOOP)
-        assert d.calibrate(9800, 300, -1670, 0).ok
+        assert d.calibrate(hi, 300, -1670, 0).ok
     assert not any(s.startswith("soft limits now") for s in said), said
     if store:  # without --scope the DAC gain stored is kept (was: stored 0, the board held at 9650 uA)
         assert [ln.split()[3] for ln in (tmp_path / "vmon_cal.txt").read_text().splitlines()[2:]] == ["1000000"] * 2
         assert sum("keeps the DAC gain 1.0000 the device had" in s for s in said) == 2, said
 
 
-def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_held_soft_limits(tmp_path, monkeypatch):
+def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_hold_to_the_limits_the_measured_gains_hold(tmp_path,
+                                                                                                    monkeypatch):
     """A fresh realistic board boots held (soft = hard = 9650 uA); `selftest --scope` stores a DAC gain on every
-    channel, which lifts the hold: the soft limits that stood at the held limit follow it to the full 10000 uA."""
+    channel, which lifts the hold: the hard limits in force are then the board's own x the lowest gain stored /
+    1.035 (review of session 22: was the full 10000 uA, which a gain typed below the true one let the physical
+    current pass), and the soft limits that stood at the held limit follow them (ch0's DAC, 0.994: 9604 uA, below
+    the hold's 9650, so one line says the soft limits are lower)."""
+    from test_held_limits import dac_held
+
     from steadytouch.device import Device
     from steadytouch.transport import open_transport
 
@@ -538,17 +550,23 @@ def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_held_soft_limits(tmp_p
         st.run(url, 10000, None, 4, True, None, said.append, _first_is(t), scope=True, ask=lambda p: next(readings))
         i = d.info()
         stored = board_sim.parse_correction((tmp_path / "vmon_cal.txt").read_text(), 2)
-        f = min(min(stored[ch][2] // 100, 10000) for ch in (0, 1))
-        hard_i = 10000 * f // 10000  # the full limit (x a DAC gain below 1 where one was measured)
-        assert hard_i > 9650
-        assert (i.held, i.hard_i_max_ua, i.i_min_ua, i.i_max_ua) == (False, hard_i, 500, hard_i)
-        assert i.q_max_pc == i.hard_q_max_pc > 9_650_000
-    assert not any(s.startswith("soft limits now") for s in said), said
+        assert [round(stored[ch][2] / 1e6, 3) for ch in (0, 1)] == [board_sim.DAC_GAIN[0], board_sim.DAC_GAIN[1]]
+        hard_i = min(dac_held(10000, stored[ch][2]) for ch in (0, 1))  # x the lowest gain / 1.035
+        hard_q = min(dac_held(10_000_000, stored[ch][2]) for ch in (0, 1))
+        assert hard_i == 9604 and hard_q == 9_604_000
+        assert (i.held, i.dac_low, i.hard_i_max_ua, i.i_min_ua, i.i_max_ua) == (False, True, hard_i, 500, hard_i)
+        assert i.q_max_pc == i.hard_q_max_pc == hard_q
+    line = [s for s in said if s.startswith("soft limits now")]
+    assert line == [f"soft limits now I 500..{hard_i} uA, T 100..{i.t_max_us} us, Q <= {hard_q} pC (were I "
+                    "500..9650 uA, Q <= 9650000 pC): the hard limits the device reports are lower"], said
 
 
 def test_selftest_says_when_the_soft_limits_cannot_be_given_back_in_full(tmp_path, monkeypatch):
     """Soft limits above what the board may deliver after the self-test (a stored DAC gain of 0.98 on ch0 now:
-    its limits x 0.98) are set to the hard limits in force, and one line says so."""
+    its limits x 0.98 / 1.035, from the full limits of a gain of 1.035 on both before) are set to the hard limits
+    in force, and one line says so."""
+    from test_held_limits import dac_held
+
     from steadytouch.device import Device
     from steadytouch.transport import open_transport
 
@@ -557,37 +575,46 @@ def test_selftest_says_when_the_soft_limits_cannot_be_given_back_in_full(tmp_pat
     said = []
     with open_transport(url) as t:
         d = Device(t)
-        d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])
+        d.set_vmon_all([(0, 0, hp.VMON_DAC_PPM_MAX), (0, 0, hp.VMON_DAC_PPM_MAX)])  # the full limits
+        assert d.info().hard_i_max_ua == 10000
         assert d.limits(500, 9900, 100, 4000, 9_900_000).ok
         run = _first_is(t)
 
         def measure(d, pts, chans, label, kept):  # the self-test's sweep; then ch0's DAC gain is lowered
             rows = st.measure(d, pts, chans, 4)
-            d.set_vmon_all([(0, 0, 980000), (0, 0, 1000000)])
+            d.set_vmon_all([(0, 0, 980000), (0, 0, hp.VMON_DAC_PPM_MAX)])
             return rows
 
         def put_back(d, old, n):  # (the old correction is what is in RAM now: 0.98 on ch0)
-            st.apply_in_ram(d, {0: (0, 0, 980000), 1: (0, 0, 1000000)}, n)
+            st.apply_in_ram(d, {0: (0, 0, 980000), 1: (0, 0, hp.VMON_DAC_PPM_MAX)}, n)
 
         monkeypatch.setattr(st, "put_back", put_back)
         st.run(url, 10000, None, 4, False, None, said.append, run, measure_with=measure)
         i = d.info()
-    assert (i.hard_i_max_ua, i.i_max_ua, i.q_max_pc) == (9800, 9800, 9_800_000)
+    hi, hq = dac_held(10000, 980000), dac_held(10_000_000, 980000)
+    assert (hi, hq) == (9468, 9_468_000)
+    assert (i.hard_i_max_ua, i.i_max_ua, i.q_max_pc) == (hi, hi, hq)
     line = [s for s in said if s.startswith("soft limits now")]
-    assert line == [f"soft limits now I 500..9800 uA, T 100..4000 us, Q <= 9800000 pC (were I 500..9900 uA, "
+    assert line == [f"soft limits now I 500..{hi} uA, T 100..4000 us, Q <= {hq} pC (were I 500..9900 uA, "
                     f"Q <= 9900000 pC): the hard limits the device reports are lower"], said
 
 
-def _scope_readings():
+def _scope_readings(gain=None):
+    """The scope plateaus (mV) of both channels' reference pulses: their DAC's true gains, or a gain typed for both
+    (gain: e.g. 1.03, whose limits in force, 10000 uA x 1.03 / 1.035 = 9951, are above the hold's 9650)."""
     code = st.SCOPE_PULSE[0] * 4096 // 10000
-    return iter(f"{code * 10000 / 4096 * board_sim.DAC_GAIN[ch] * 10:.1f}" for ch in (0, 1))
+    return iter(f"{code * 10000 / 4096 * (gain or board_sim.DAC_GAIN[ch]) * 10:.1f}" for ch in (0, 1))
 
 
 def test_a_soft_limit_set_at_the_held_value_is_not_raised_by_selftest_scope(tmp_path, monkeypatch):
     """Issue 13 (deliverable 4's loose ends): a user who set i_max and q_max to exactly the held 9650 uA /
     9.65 uC got them raised to the full limits by `selftest --scope` (restore_limits could not tell "lowered
     by the hold" from "set by the user"). GET_INFO page 1 carries the soft limits as set: the user's stay; the
-    board_config ones the hold lowered at boot come back (the next test above, and below on a second board)."""
+    board_config ones the hold lowered at boot come back (the next test above, and below on a second board).
+    The scope read at a DAC gain of 1.03 on both channels: the limits in force after it (x 1.03 / 1.035, 9951 uA)
+    are above the held value, so "not raised" is a check that can fail."""
+    from test_held_limits import dac_held
+
     from steadytouch.device import Device
     from steadytouch.transport import open_transport
 
@@ -599,10 +626,13 @@ def test_a_soft_limit_set_at_the_held_value_is_not_raised_by_selftest_scope(tmp_
         assert d.info().held
         assert d.limits(500, 9650, 100, 4000, 9_650_000).ok  # deliberately at the held limits
         st.run(url, 10000, None, 4, True, None, said.append, _first_is(t), scope=True,
-               ask=lambda p, r=_scope_readings(): next(r))
+               ask=lambda p, r=_scope_readings(1.03): next(r))
         i = d.info()
         own = d.own_limits()
-    assert not i.held and i.hard_i_max_ua > 9650 and i.hard_q_max_pc > 9_650_000  # the hold is lifted ...
+    g = min(c[2] for c in board_sim.parse_correction((tmp_path / "vmon_cal.txt").read_text(), 2))
+    hi, hq = dac_held(10000, g), dac_held(10_000_000, g)
+    assert hi > 9650 and hq > 9_650_000
+    assert not i.held and (i.hard_i_max_ua, i.hard_q_max_pc) == (hi, hq)  # the hold is lifted ...
     # ... not these
     assert (i.i_min_ua, i.i_max_ua, i.t_min_us, i.t_max_us, i.q_max_pc) == (500, 9650, 100, 4000, 9_650_000)
     assert (own.i_max_ua, own.q_max_pc) == (9650, 9_650_000)
@@ -626,9 +656,10 @@ def test_selftest_on_firmware_without_page_1_never_raises_a_soft_limit_and_says_
         d = Device(old)
         assert d.info().held and d.own_limits() is None
         st.run(url, 10000, None, 4, True, None, said.append, _first_is(old), scope=True,
-               ask=lambda p, r=_scope_readings(): next(r))
+               ask=lambda p, r=_scope_readings(1.03): next(r))  # limits in force after it: 9951 uA, above the hold
         i = d.info()
-    assert not i.held and (i.i_max_ua, i.q_max_pc) == (9650, 9_650_000)
+    assert not i.held and i.hard_i_max_ua > 9650 and i.hard_q_max_pc > 9_650_000
+    assert (i.i_max_ua, i.q_max_pc) == (9650, 9_650_000)
     line = [s for s in said if s.startswith("soft limits stay")]
     assert len(line) == 1 and "I 500..9650 uA, Q <= 9650000 pC" in line[0] and "`steadytouch limits` raises" in line[0]
 
@@ -638,7 +669,9 @@ def test_a_self_test_that_stores_nothing_never_raises_a_soft_limit(tmp_path, mon
     """Review rev-lims F4 (sim://, as the reviewer ran it): a fresh board boots held (soft 9650 uA / 9.65 uC);
     DAC gains applied in RAM lift the hold, the soft limits stay lowered (the firmware never raises them). A
     self-test that then stops (or runs without --store) put the limits back 'as set, capped at the hard limits in
-    force': 10000 uA / 10 uC, raised with nothing stored. Now capped at what they were before it ran."""
+    force': 10000 uA / 10 uC, raised with nothing stored. Now capped at what they were before it ran. (The hard
+    limits in force with a gain of 1.000 on both: x 1 / 1.035, 9661 uA, above the soft 9650.)"""
+    from test_held_limits import LOW_I
     from steadytouch.device import Device
     from steadytouch.transport import open_transport
 
@@ -650,7 +683,7 @@ def test_a_self_test_that_stores_nothing_never_raises_a_soft_limit(tmp_path, mon
         assert d.info().held and d.info().i_max_ua == 9650
         d.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)])  # RAM only: the hold lifts
         i1 = d.info()
-        assert (i1.held, i1.hard_i_max_ua, i1.i_max_ua, i1.q_max_pc) == (False, 10000, 9650, 9_650_000)
+        assert (i1.held, i1.hard_i_max_ua, i1.i_max_ua, i1.q_max_pc) == (False, LOW_I, 9650, 9_650_000)
         before = _soft(i1)
         if how == "aborted":
             def boom(*a):
@@ -661,6 +694,6 @@ def test_a_self_test_that_stores_nothing_never_raises_a_soft_limit(tmp_path, mon
         else:
             assert st.run(url, 10000, None, 4, False, None, said.append, _first_is(t)) == 0
         i2 = d.info()
-        assert (i2.held, i2.hard_i_max_ua) == (False, 10000)  # the RAM gains put back: the hold stays lifted
+        assert (i2.held, i2.hard_i_max_ua) == (False, LOW_I)  # the RAM gains put back: the hold stays lifted
         assert _soft(i2) == before, (_soft(i2), before, said)
     assert not (tmp_path / "vmon_cal.txt").exists()

@@ -4,7 +4,7 @@ simulated board):
 - a monitor gain stored too high must not hide an electrode that came off (the raw
   reading at compliance latches too);
 - a DAC gain stored too low must not let the physical charge past the hard limits (the
-  reported current is held to the limits x that gain);
+  reported current is held to the limits x that gain / VMON_DAC_PPM_MAX, the window's top);
 - a changed DAC gain changes the current a code delivers: the channel must be calibrated
   again before it can be armed."""
 
@@ -64,7 +64,7 @@ for dac in (0, hp.VMON_DAC_PPM_MIN, hp.VMON_DAC_PPM_MAX, 1000000):
     s, board, clock = make("steady", 20)
     b = bytearray(64)
     r = [cmd(s, clock, hp.cmd_set_vmon(b, 0, hp.VMON_APPLY, 0, 0, dac_gain_ppm=dac))]
-    force_nominal_soft_limits(s)  # (else a gain below 1 would hold them: the pulse below is refused ahead)
+    force_nominal_soft_limits(s)  # (else a gain below 1.035 would hold them: the pulse below is refused ahead)
     r += [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
           cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, 1250, 8000, -1670, 0)),  # at the nominal hard charge
           cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
@@ -76,8 +76,10 @@ result(out=out)
     for dac, acks, stop, q_reported, q_physical, hard_q in res[0]["out"]:
         assert acks == [hp.RES_OK] * 4, (dac, acks)
         assert q_reported <= hard_q and q_physical <= hard_q, (dac, stop, q_reported, q_physical)  # was 11.03 uC
-    measured = res[0]["out"][3]
-    assert measured[2] == hp.STOP_NONE and measured[3] > 0  # a DAC measured nominal (1.0) still pulses at its limit
+    top = res[0]["out"][2]  # a DAC measured at the window's top (1.035) still pulses at the nominal hard charge
+    assert top[0] == hp.VMON_DAC_PPM_MAX and top[2] == hp.STOP_NONE and top[3] > 0, top
+    measured = res[0]["out"][3]  # one measured nominal (1.0) is held x 1 / 1.035: the gate latches, nothing delivered
+    assert measured[0] == 1000000 and measured[2] == hp.STOP_LIMIT and measured[3] == 0, measured
 
 
 def test_a_changed_dac_gain_needs_a_new_calibration_before_arming():
@@ -235,3 +237,66 @@ result(**out)
     assert all(g[0] == hp.STOP_NONE and g[1] > 0 for g in gate)  # nothing is held on the ideal board
     i = decode(bytes.fromhex(info))
     assert (i.hard_i_max_ua, i.hard_q_max_pc, i.held) == (hard_i, hard_q, False)
+
+
+def test_a_dac_gain_stored_below_the_true_one_keeps_the_physical_current_within_the_hard_limits():
+    """Review of session 22: the board reports code x LSB x the *stored* DAC gain, the physical current
+    is code x LSB x the *true* one, and the stored gain is the host's word (a scope plateau typed low).
+    The reported current was held to the hard limits x the stored gain only below 1: 1.000 stored on the
+    realistic board's ch1 (true 1.006, board_sim.DAC_GAIN) gave back the full limits and a pulse there
+    delivered 10 058 uA against the 10 000 uA hard limit (10.06 uC against 10). Now held to the hard limits
+    x stored gain / VMON_DAC_PPM_MAX (stim._dac_limits): for every stored gain in the window, on both
+    channels, with SET_LIMITS raised to the limits in force, a run at the highest current and one at the
+    highest charge never deliver a physical current or charge above the hard limits."""
+    _, res, _ = run_fw(SETUP + """
+out = []
+for dac in (hp.VMON_DAC_PPM_MIN, 1000000, 1006000, hp.VMON_DAC_PPM_MAX):
+    for i_of, t_of in (("i", 1000), ("q", hp.T_FLOOR_US), ("q", 0)):
+        clock = VirtualClock(0)
+        bd = SimBoard(cfg, clock, sim_electrode.scenario("steady"), 2, 1, MemoryUSB(True), noise_counts=0.0,
+                      load_ohm=1000)
+        s = stim.Stimulator(bd, clock, cfg, 2, 20, 0)
+        b = bytearray(64)
+        r = [cmd(s, clock, hp.cmd_set_vmon_all(b, hp.VMON_APPLY, [(0, 0, dac), (0, 0, dac)]))]
+        hi = s.held_limit(0)  # the limits in force (GET_INFO's hard fields)
+        hq = s.held_limit(1)
+        r.append(cmd(s, clock, hp.cmd_set_limits(b, 1, hi, hp.T_FLOOR_US, s.hard_t, hq)))
+        if t_of == 0:  # the highest charge at the longest pulse
+            t = s.hard_t
+            i = hq // t
+        elif i_of == "i":  # the highest current
+            i, t = hi, t_of
+        else:  # the highest charge at the highest current
+            i = hi
+            t = hq // hi
+        r += [cmd(s, clock, hp.cmd_set_mode(b, sc.MODE_OPEN_LOOP)),
+              cmd(s, clock, hp.cmd_calibrate(b, hp.CH_ALL, i, t, -1670, 0)),
+              cmd(s, clock, hp.cmd_arm(b, hp.CH_ALL))]
+        peak = [[0, 0.0, 0.0, 0], [0, 0.0, 0.0, 0]]
+        for k in range(6):
+            s.run(1)
+            for c in s.chans:
+                p = peak[c.ch]
+                p[0] = c.stop
+                if c.dt and bd.last_i_ua[c.ch] > p[1]:
+                    p[1] = bd.last_i_ua[c.ch]
+                    p[2] = bd.last_i_ua[c.ch] * c.dt
+                    p[3] = c.di
+                ph = bd.analog.physical_ua(c.ch, bd.code[c.ch])
+                if ph > p[1]:
+                    p[1] = ph
+                    p[2] = ph * c.dt
+        out.append([dac, i, t, hi, hq, r, peak, s.hard_i, s.hard_q])
+result(out=out)
+""")
+    over = [(dac, ch, i, t, round(phys_i, 1), round(phys_q)) for dac, i, t, hi, hq, acks, peak, hard_i, hard_q
+            in res[0]["out"] for ch, (stop, phys_i, phys_q, di) in enumerate(peak) if phys_i > hard_i or phys_q > hard_q]
+    assert not over, over  # was: at 1.000 and 1.006 stored, ch1 delivered 10 058 uA, 10.06 uC
+    for dac, i, t, hi, hq, acks, peak, hard_i, hard_q in res[0]["out"]:
+        assert acks == [hp.RES_OK] * 5, (dac, i, t, acks)
+        for ch, (stop, phys_i, phys_q, di) in enumerate(peak):
+            assert stop == hp.STOP_NONE and di > 0, (dac, ch, i, t, peak)  # delivered, not latched
+        # the limits in force: the hard limits x stored gain / VMON_DAC_PPM_MAX (the full ones only at 1.035)
+        assert hi <= hard_i * dac / hp.VMON_DAC_PPM_MAX and hq <= hard_q * dac / hp.VMON_DAC_PPM_MAX, (dac, hi, hq)
+        assert hi >= hard_i * dac / hp.VMON_DAC_PPM_MAX - 2 and hq >= hard_q * dac / hp.VMON_DAC_PPM_MAX - 2000, (dac,)
+    assert [o[3] for o in res[0]["out"] if o[0] == hp.VMON_DAC_PPM_MAX] == [res[0]["out"][0][7]] * 3  # full at 1.035

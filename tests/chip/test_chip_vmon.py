@@ -105,8 +105,10 @@ def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_l
     reports them with INFO_FLAG_HELD, the boot soft limits are lowered to them, and a CALIBRATE or
     SET_LIMITS above them is refused ahead (RES_OUT_OF_RANGE, the byte; was: accepted, then latched
     STOP_LIMIT at the gate with no pulse and no reason given). Once every channel has a DAC gain (1.0)
-    GET_INFO reports the full limits, the soft ones stay where they were until SET_LIMITS raises them, and
-    both channels pulse at the full hard current. Removing a gain again (under the heap lock) lowers the
+    GET_INFO reports the hard limits x that gain / 1.035 (9661 uA: the physical current then stays within
+    the hard limits whatever the DAC's true gain in its window; review of session 22: was the full limits),
+    with INFO_FLAG_DAC_LOW, the soft ones stay where they were until SET_LIMITS raises them (up to there; above
+    it refused), and both channels pulse there. Removing a gain again (under the heap lock) lowers the
     soft limits at once and drops the calibration above them."""
     cmd = Commands()
     chip = chip_host.boot(chip_host.image)
@@ -115,14 +117,19 @@ def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_l
     hp.seal(junk)
     hard_i, hard_q = cfg.HARD_I_MAX_UA, cfg.HARD_Q_MAX_PC
     held_i, held_q = hard_i * hp.VMON_DAC_PPM_MIN // 1000000, hard_q * hp.VMON_DAC_PPM_MIN // 1000000
+    f = (1000000 // 100) * 10000 // (hp.VMON_DAC_PPM_MAX // 100)  # a DAC gain of 1.000 stored (stim._dac_limits)
+    low_i, low_q = hard_i * f // 10000, hard_q * f // 10000
+    assert hard_i / 1.035 - 2 <= low_i <= hard_i / 1.035 and hard_q / 1.035 - 2000 <= low_q <= hard_q / 1.035
+    assert low_i > held_i and low_q > held_q
     t_us = 100
     sent = [cmd.get_info(), bytes(junk), cmd.get_info(0), cmd.get_info(1),
             cmd.set_mode(sc.MODE_OPEN_LOOP),
             cmd.calibrate(hard_i, t_us, 0, 0),  # refused ahead: above the held soft limit
             cmd.set_limits(1, hard_i, t_us, 1000, hard_q),  # refused ahead: above the held hard limit
             cmd.set_vmon(1, 0, 0, dac_gain_ppm=1000000), cmd.get_info(),  # ch0 still has none: still held
-            cmd.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)]), cmd.get_info(),  # every channel: the full limits
-            cmd.set_limits(1, hard_i, t_us, 1000, hard_q), cmd.calibrate(hard_i, t_us, 0, 0), cmd.arm()]
+            cmd.set_vmon_all([(0, 0, 1000000), (0, 0, 1000000)]), cmd.get_info(),  # every channel: x 1 / 1.035
+            cmd.set_limits(1, hard_i, t_us, 1000, low_q),  # refused: above the limit the gain holds
+            cmd.set_limits(1, low_i, t_us, 1000, low_q), cmd.calibrate(low_i, t_us, 0, 0), cmd.arm()]
     chip.wiring(cfg, cfg.N_CHANNELS)
     for ch in range(cfg.N_CHANNELS):
         chip.load(ch, rp_ohm=1000)  # 10 V at the hard limit: well within compliance
@@ -135,19 +142,20 @@ def test_on_the_chip_reserved_bytes_are_refused_and_no_dac_gain_holds_the_hard_l
                     (hp.CMD_CALIBRATE, hp.RES_OUT_OF_RANGE, hp.O_ARG),
                     (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2),
                     (hp.CMD_SET_VMON, hp.RES_OK, 0), (hp.CMD_SET_VMON, hp.RES_OK, 0),
+                    (hp.CMD_SET_LIMITS, hp.RES_OUT_OF_RANGE, hp.O_ARG + 2),
                     (hp.CMD_SET_LIMITS, hp.RES_OK, 0), (hp.CMD_CALIBRATE, hp.RES_OK, 0), (hp.CMD_ARM, hp.RES_OK, 0)]
     cal = [r for r in reps if isinstance(r, CalInfo)]
     assert [(c.vmon_gain_ppm, c.dac_gain_ppm) for c in cal] == [(0, 0), (0, 0)]  # the refused command changed nothing
     info = [r for r in reps if isinstance(r, Info)]
     soft = [(i.i_max_ua, i.q_max_pc) for i in info]
-    assert [(i.hard_i_max_ua, i.hard_q_max_pc, i.held) for i in info] == [
-        (held_i, held_q, True), (held_i, held_q, True), (hard_i, hard_q, False)]
+    assert [(i.hard_i_max_ua, i.hard_q_max_pc, i.held, i.dac_low) for i in info] == [
+        (held_i, held_q, True, False), (held_i, held_q, True, False), (low_i, low_q, False, True)]
     assert soft == [(held_i, held_q)] * 3  # lowered at boot; a gain stored later does not raise them by itself
     tel = {ch: [t for t in reps if isinstance(t, Telemetry) and t.channel == ch] for ch in (0, 1)}
     for ch in (0, 1):
         assert not any(t.stop == hp.STOP_LIMIT for t in tel[ch])
         pulsed = [t for t in tel[ch] if t.i_ua]
-        assert len(pulsed) >= 3 and all(t.stop == hp.STOP_NONE and hard_i - 5 <= t.i_ua <= hard_i for t in pulsed)
+        assert len(pulsed) >= 3 and all(t.stop == hp.STOP_NONE and low_i - 5 <= t.i_ua <= low_i for t in pulsed)
 
     # ch0's gain removed (SET_VMON under the heap lock): the soft limits follow it down at once, the
     # calibration above them must be sent again (ARM refused), GET_INFO says held again
