@@ -436,6 +436,18 @@ def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_i
     assert max(bad) <= max(clean) * 1.005, (max(bad), max(clean), bad[at:at + 12])
 
 
+def _recording(tel, lim):
+    """A recording's header (the limits in force, the calibration start() sends) and rows, as
+    `steadytouch record` writes them, from one channel's telemetry: what `audit` reads."""
+    lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), lim))
+    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
+            "y_star_pc": "186000"}
+    rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
+             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
+            for t in tel]
+    return meta, rows
+
+
 @pytest.mark.parametrize("mode", [sc.MODE_AKHTAR, sc.MODE_CONSTANT_ENERGY, sc.MODE_FAST])
 def test_audit_replays_calibration_pulses_that_disagree_and_a_rearm_bit_exact(mode):
     """The host's audit applies the device's calibration rule (hid_protocol.cal_rp0): a first
@@ -464,12 +476,7 @@ def test_audit_replays_calibration_pulses_that_disagree_and_a_rearm_bit_exact(mo
     tel = telemetry(reports, 0)
     cal = [k for k, t in enumerate(tel) if t.flags & hp.FLAG_CALIBRATING]
     assert len(cal) == 3 + 1 + 3  # x 0.5 sent again; the pulse before the DISARM; x 1.2 sent again
-    lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), results[0]["lim"]))
-    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
-            "y_star_pc": "186000"}
-    rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
-             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
-            for t in tel]
+    meta, rows = _recording(tel, results[0]["lim"])
     res = audit(meta, rows)
     assert res.checked >= 80 and res.mismatches == []
     # the replay rests on the calibration readings: the second pulse read as the first (x 0.5) gives
@@ -527,11 +534,6 @@ def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     """)
     tel = telemetry(reports, 0)
     assert sum(1 for t in tel if t.flags & hp.FLAG_CALIBRATING) == 2 and all(t.i_ua for t in tel)
-    lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), results[0]["lim"]))
-    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
-            "y_star_pc": "186000"}
-    rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
-             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
-            for t in tel]
+    meta, rows = _recording(tel, results[0]["lim"])
     res = audit(meta, rows)
     assert res.checked == len(tel) and res.mismatches == []
