@@ -186,13 +186,12 @@ _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: no
 _CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SET_MODE takes Rp0
 _CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
 _NV = const(36)
-# after a fall of the charge by more than 1/2**this (1/32: one reading x 1.1 made a fall of 9 %
-# in constant energy and a recovery 3 % past the pulse before it with 1/8, review of session 22),
-# no raise goes past the pulse sent before
-# the fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then
-# the two-in-a-row rule's to judge): one wild reading that made the fall cannot make the
-# recovery overshoot the charge it had (review of session 22: +73 % in constant energy, +10 % in
-# MODE_FAST with a skin model, from one reading; docs/safety.md)
+# after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
+# fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
+# two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
+# overshoot the charge it had (review of session 22: +73 % in constant energy, +10 % in MODE_FAST
+# with a skin model, from one reading; with 1/8 a reading x 1.1 made a fall of 9 % and a recovery
+# 3 % past it; docs/safety.md)
 _C_FALL_LOG2 = const(5)
 _C_FALL_HOLD = const(16)
 
