@@ -920,11 +920,8 @@ class Stimulator:
         if cmd == hp.CMD_DISARM:
             k = lo
             while k < hi:  # a channel already stopped keeps the reason (electrode off, keep-alive, ...)
-                c = self.chans[k]
-                if c.armed:
-                    self._latch(c, hp.STOP_DISARMED)
-                else:  # (its outputs are off already: _latch sets them to nothing again)
-                    self._latch(c, c.stop)
+                if self.chans[k].armed:
+                    self._latch(self.chans[k], hp.STOP_DISARMED)
                 k += 1
             return self._ack(r, hp.RES_OK, 0)
         if cmd == hp.CMD_ARM:
