@@ -66,6 +66,8 @@ _C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_
 _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
+_C_K_IMIN = const(1)  # its soft i_min, t_min (sensation_core._K_IMIN, _K_TMIN; checked below)
+_C_K_TMIN = const(3)
 _C_W_BIAS = const(0x20000000)
 _C_MODE_CE = const(2)  # sc.MODE_CONSTANT_ENERGY: its T grows with Rp0 (the calibration takes the smaller reading)
 if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US
@@ -84,14 +86,14 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
-_c = sc.Controller(1, 2, 1, 2, 4)  # the controller's words as _control and the report read them
+_c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the report read them
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
 _c.me_ua2ms, _c.mq_target_fc_per_ohm = 15, 16
 _c.set_mode(sc.MODE_FAST)
-if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE)] != [
-        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST]:
+if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_IMIN, _C_K_TMIN)] != [
+        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 1, 3]:
     raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, "
-                      "_C_K_MODE, _C_W_BIAS")
+                      "_C_K_MODE, _C_K_IMIN, _C_K_TMIN, _C_W_BIAS")
 del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
@@ -185,7 +187,8 @@ _FT = const(32)
 _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: none)
 _CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SET_MODE takes Rp0
 _CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
-_NV = const(36)
+_MS = const(36)  # 1: the mode changed while armed; the new law's first raise is capped (_control)
+_NV = const(37)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -194,6 +197,9 @@ _NV = const(36)
 # 3 % past it; docs/safety.md)
 _C_FALL_LOG2 = const(5)
 _C_FALL_HOLD = const(16)
+# after SET_MODE while armed the new law's raises are capped at 1/2**this more than the pulse sent,
+# until it asks for no more (_control, _MS)
+_C_MODE_RAMP_LOG2 = const(2)
 
 
 def _vmon_product_max(uv):
@@ -676,6 +682,23 @@ class Stimulator:
         nt = k[_C_K_T]
         q = ni * nt
         qs = v[_I] * v[_T]  # the pulse just sent
+        ms = v[_MS]
+        if ms:  # a law the mode changed to: its readings were on the old law's pulses, of another shape
+            cap = qs  # (Rp rises with the width and falls as the current rises), so its first pulse is
+            if ms > 1:  # capped at the charge just sent, later raises at 1/4 more each, in the law's own
+                cap += qs >> _C_MODE_RAMP_LOG2  # current (its width shortened; at its t_min the current
+            if q > cap:  # that charge allows) until it asks for no more: each raise then rests on a
+                nt = cap // ni  # reading of the shape before, not of the old law's (review of session 22:
+                if nt < k[_C_K_TMIN]:  # +9.5 % in one pulse after a switch to constant energy from
+                    nt = k[_C_K_TMIN]  # 1097 uA; from a 100 us pulse after a gel, 1.9x its settled charge)
+                    ni = cap // nt
+                if ni < k[_C_K_IMIN]:  # (only with limits changed since: the same pulse again)
+                    ni = v[_I]
+                    nt = v[_T]
+                q = ni * nt
+                v[_MS] = 2
+            else:
+                v[_MS] = 0
         fn = v[_FN]
         if fn > 0:
             fn -= 1
@@ -939,6 +962,7 @@ class Stimulator:
                     c.calibrating = True
                     c.v[_CN] = 0  # (_CR: a reading of the frame before pairs, as `audit` pairs them)
                     c.v[_FN] = 0  # (no fall to hold a raise below yet)
+                    c.v[_MS] = 0
                     c.held = False
                     c.stop = hp.STOP_NONE
                     c.i = c.i0
@@ -962,6 +986,7 @@ class Stimulator:
                     # constant energy then used by Eq. 2 let one reading x 0.97 raise every pulse 8.9 %)
                     c.ctl.calibrate(c.i0, c.t0, hp.cal_rp0(c.v[_CLO], c.v[_CHI], mode == sc.MODE_CONSTANT_ENERGY),
                                     c.x, c.y)
+                    c.v[_MS] = 1  # (the new law's first raise is capped: _control)
                 c.ctl.set_mode(mode)
                 k += 1
             if rate:

@@ -515,6 +515,65 @@ def test_a_mode_change_takes_rp0_again_for_its_own_law(cal_mode, mode, factor, a
     assert max(bad[4:]) <= max(clean[4:]) * 1.005, (max(bad[4:]), max(clean[4:]))
 
 
+def test_a_mode_change_from_a_current_away_from_i0_sends_no_surge():
+    """Third review of session 22 (MEDIUM): a reading x 1.03 on a calibration pulse (inside the
+    window) lets MODE_AKHTAR settle at 1097 uA x 831 us; a SET_MODE to constant energy then applied
+    the reading taken at 1097 uA to I0 (Rp falls as the current rises) and sent one pulse +9.5 %
+    above the run without it, both readings on the old pulse agreeing. The new law's first pulse is
+    now capped at the charge just sent, in its own current, so its raises rest on its own readings."""
+    reports, _, _ = run_fw("""
+        for g in (1.0, 1.03):
+            s, board, usb, clock = make("steady", n=1)
+            start(s, mode=sc.MODE_AKHTAR)
+            s.run(1)
+            board.glitch[0] = g
+            s.run(39)
+            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
+            s.run(20)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    clean, bad = [tel[k * 60:(k + 1) * 60] for k in (0, 1)]
+    assert bad[39].i_ua > 1080 and clean[39].i_ua < 1010  # the reading did move the current away from I0
+    qc, qb = [[t.i_ua * t.t_us for t in run[40:]] for run in (clean, bad)]
+    assert {t.i_ua for t in bad[41:]} == {1000}  # the new law's current at once, a shorter pulse first
+    assert max(qb) <= max(qc) * 1.035, (max(qb), max(qc), qb[:6])  # (+9.5 % before)
+
+
+@pytest.mark.parametrize("old, new", [
+    (sc.MODE_PULSE_WIDTH_LINEAR, sc.MODE_CONSTANT_ENERGY),  # from 100 us after the gel: 1.9x before
+    (sc.MODE_AKHTAR, sc.MODE_CONSTANT_ENERGY),  # 2.1x before
+    (sc.MODE_PULSE_WIDTH_LINEAR, sc.MODE_FAST)])  # 2.4x before
+def test_a_mode_change_ramps_to_the_new_laws_charge_without_overshoot(old, new):
+    """After the gel drop one law runs at a pulse of another shape than the next law's (a 100 us
+    pulse where constant energy wants 2.7 ms): the new law's first proposal, from a reading on a short
+    pulse, asked up to 2.4x the charge it settles at, and two readings on that pulse agreed. After
+    SET_MODE while armed its raises are capped at 1/4 more than the pulse sent, in its own current,
+    until it asks for no more: no pulse passes the larger of the old and the settled charge by more
+    than the noise, the ramp ends, and the run replays in `audit` with no mismatch."""
+    from steadytouch.audit import audit
+
+    reports, results, _ = run_fw(f"""
+        s, board, usb, clock = make("gel-step", n=1)
+        start(s, mode={old})
+        s.run(135)
+        assert apply(s, hp.cmd_set_mode(bytearray(64), {new})) == 0
+        s.run(125)
+        dump(usb)
+        result(lim=list(s.lim))
+    """)
+    tel = telemetry(reports, 0)
+    assert len(tel) == 260 and all(t.stop == hp.STOP_NONE for t in tel)
+    q = [t.i_ua * t.t_us for t in tel]
+    before, final = q[134], q[-1]
+    assert max(final, before) > 2 * min(final, before)  # the two laws are far apart after the gel
+    assert max(q[135:]) <= max(before, final) * 1.02, (before, final, q[135:150])
+    assert all(abs(x - final) <= final * 0.01 for x in q[-40:])  # the ramp ended: the new law settled
+    meta, rows = _recording(tel, results[0]["lim"])
+    res = audit(meta, rows)
+    assert res.checked >= 250 and res.mismatches == []
+
+
 def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     """Calibration pulses pair when they are in consecutive frames, as audit sees them: a DISARM and
     an ARM between two frames do not part them (second review of session 22: 57 of 60 pulses were
