@@ -300,7 +300,7 @@ class Board:
             x = spi[2]
         sio[5] = cs  # GPIO_OUT_SET: chip select high: the DAC latches the word
         ptr32(self.codes)[ch] = code  # the driver's record (dac.codes, an int array)
-        return (code * full + 2048) >> 12
+        return (code * full + 4095) >> 12  # rounded up (dac_mcp4822.ua_for)
 
     def stop(self, ch):
         """Gate low, no pulse pending, amplitude 0: whatever the state machine was

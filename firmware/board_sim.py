@@ -14,6 +14,7 @@ import random
 import sys
 from array import array
 
+import dac_mcp4822
 import sim_electrode
 
 MAGIC0 = 0xA5  # stdio framing: MAGIC0 MAGIC1 then a 64-byte report
@@ -86,8 +87,9 @@ class AnalogPath:
         return DAC_CODES - 1 if c >= DAC_CODES else c
 
     def delivered_ua(self, code, ch=None):
-        """What the firmware is told: code x LSB (with channel ch's stored DAC gain), whole uA (rounded down)."""
-        return code * (self.fs_ua if ch is None else self.fs_cal[ch]) // DAC_CODES
+        """What the firmware is told: code x LSB (with channel ch's stored DAC gain), whole uA
+        rounded up, as dac_mcp4822.ua_for."""
+        return dac_mcp4822.ua_for(code, self.fs_ua if ch is None else self.fs_cal[ch])
 
     def physical_ua(self, ch, code):
         """The current the output stage really drives (float uA): code x LSB x gain error."""
@@ -347,9 +349,7 @@ class SimBoard:
         its full scale follows, so set_amplitude reports the current delivered. The ideal
         board has no DAC: nothing changes."""
         if not self.ideal:
-            fs = self.analog.fs_ua
-            d = ((ppm or 1000000) - 1000000) // 10
-            self.analog.fs_cal[ch] = fs + (fs * d + 50000) // 100000
+            self.analog.fs_cal[ch] = dac_mcp4822.full_for(self.analog.fs_ua, ppm or 1000000)
 
     def stop(self, ch):
         self.set_amplitude(ch, 0)

@@ -47,8 +47,20 @@ def code_for(i_ua, full_ua):
 
 
 def ua_for(code, full_ua):
-    """The current a code delivers, in whole uA (nearest): code * full_ua / 4096."""
-    return (code * full_ua + (CODES >> 1)) // CODES
+    """The current a code delivers, in whole uA rounded up: code * full_ua / 4096. Up, so
+    the current the firmware is told is never below the one the output drives at its
+    full scale: the hard limits held on it (stim._dac_limits) hold the physical current
+    (docs/safety.md: nearest let it pass a hard limit by up to 130 ppm)."""
+    return (code * full_ua + (CODES - 1)) // CODES
+
+
+def full_for(full_ua, ppm):
+    """The full scale of an output whose gain is ppm / 1e6 (in the window), whole uA, rounded
+    up, as the gain taken to 10 ppm (up): never below full_ua x ppm / 1e6, so a code's
+    current as reported (ua_for) is never below what that gain drives. |d| <= 10000:
+    full_ua * d < 2**30."""
+    d = -((1000000 - ppm) // 10)
+    return full_ua - ((-full_ua * d) // 100000)
 
 
 def word(ch, code):
@@ -106,9 +118,7 @@ class MCP4822:
             ppm = 1000000
         if not GAIN_PPM_MIN <= ppm <= GAIN_PPM_MAX:
             raise ValueError("DAC gain out of range")
-        d = (ppm - 1000000) // 10  # |d| <= 10000: full_ua * d < 2**30
-        full = self.full_ua
-        self.full[ch] = full + (full * d + 50000) // 100000
+        self.full[ch] = full_for(self.full_ua, ppm)
 
     def set_ua(self, ch, i_ua):
         """Set channel ch to the nearest current not above i_ua; return the current
@@ -134,7 +144,7 @@ class MCP4822:
         self.spi.write(buf)
         cs(1)
         self.codes[ch] = code
-        return (code * full + 2048) // 4096
+        return (code * full + 4095) // 4096  # (ua_for: rounded up)
 
     def zero_all(self):
         k = 0

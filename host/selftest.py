@@ -361,8 +361,8 @@ def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600
             rep = d.read(2.0)
             if rep is None:
                 raise SelfTestError(f"ch{ch}: no pulse at {i_ua} uA, {t_us} us: is the device running?")
-            # this pulse's (not a report of the sweep still queued): the DAC's step below the command
-            if isinstance(rep, Telemetry) and rep.channel == ch and rep.t_us == t_us and 0 < i_ua - rep.i_ua < 5:
+            # this pulse's (not a report of the sweep still queued): at most the DAC's step below the command
+            if isinstance(rep, Telemetry) and rep.channel == ch and rep.t_us == t_us and 0 <= i_ua - rep.i_ua < 5:
                 if rep.stop not in (hp.STOP_NONE,):  # this pulse latched (e.g. at compliance): no plateau to read
                     raise SelfTestError(f"ch{ch} stopped at the scope's pulse {i_ua} uA x {t_us} us (stop reason "
                                         f"{rep.stop}): is the load connected?")

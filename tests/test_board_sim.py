@@ -25,7 +25,7 @@ def test_set_amplitude_returns_code_times_lsb_never_above_the_command(i_ua):
     b = board()
     got = b.set_amplitude(0, i_ua)
     code = min(i_ua * 4096 // cfg.AMP_UA_AT_FULL, 4095)
-    assert got == code * cfg.AMP_UA_AT_FULL // 4096
+    assert got == -(-code * cfg.AMP_UA_AT_FULL // 4096)  # whole uA, rounded up (dac_mcp4822.ua_for)
     assert 0 <= i_ua - got <= math.ceil(cfg.AMP_UA_AT_FULL / 4096) or i_ua >= 9998
     assert board(ideal=True).set_amplitude(0, i_ua) == i_ua
 
@@ -35,8 +35,8 @@ def test_dac_steps_are_at_most_2_5_ua():
     codes = sorted({b.analog.code(i) for i in range(0, 10001)})
     assert codes == list(range(4096))  # every code reachable: steps of one LSB
     assert cfg.AMP_UA_AT_FULL / 4096 <= 2.5
-    for i in range(0, 10001, 7):  # reported: code x LSB in whole uA (rounded down)
-        assert 0 <= b.analog.code(i) * cfg.AMP_UA_AT_FULL / 4096 - b.set_amplitude(0, i) < 1
+    for i in range(0, 10001, 7):  # reported: code x LSB in whole uA (rounded up: never below it)
+        assert 0 <= b.set_amplitude(0, i) - b.analog.code(i) * cfg.AMP_UA_AT_FULL / 4096 < 1
 
 
 def test_the_dac_settles_first_order_in_its_datasheet_time():

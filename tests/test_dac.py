@@ -16,10 +16,13 @@ delivered current as the truth in the firmware (stim.py) and the host's audit.
 from __future__ import annotations
 
 import importlib.util
+import math
 import subprocess
 import textwrap
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import hid_protocol as hp
 import sensation_core as sc
@@ -74,11 +77,28 @@ def test_code_math_is_the_transfer_function_never_above_the_command():
         assert exact <= max(i, 0)  # never more than asked
         if 0 < i < FULL:
             assert i - exact < LSB  # short of it by under one step
-        assert dac.ua_for(code, FULL) == int(exact + 0.5)  # reported to the nearest uA
+        assert dac.ua_for(code, FULL) == math.ceil(exact) <= max(i, 0)  # rounded up: never below it
     assert dac.code_for(FULL, FULL) == dac.code_for(10**6, FULL) == 4095
     assert dac.ua_for(4095, FULL) == 9998
     # the largest intermediate stays a small int on the rp2 (31-bit)
-    assert 4096 * dac.FULL_UA_MAX < 2**30 and 4095 * dac.FULL_UA_MAX + 2048 < 2**30
+    assert 4096 * dac.FULL_UA_MAX < 2**30 and 4095 * dac.FULL_UA_MAX + 4095 < 2**30
+
+
+@settings(max_examples=400, deadline=None)
+@given(full=st.integers(1, dac.FULL_UA_MAX), ppm=st.integers(dac.GAIN_PPM_MIN, dac.GAIN_PPM_MAX),
+       code=st.integers(0, 4095))
+def test_the_reported_current_is_never_below_what_the_stored_gain_drives(full, ppm, code):
+    """The firmware is told ua_for(code, full_for(full, ppm)); the output drives code x full x g / 4096
+    for its true gain g. Both rounded up, so what it is told is never below what a gain of ppm
+    drives: the hard limits held on the reported current (stim._dac_limits, x stored gain / 1.035)
+    then hold the physical one for any true gain up to 1.035. (Rounded to the nearest uA, a
+    2097 uA full scale with 1.035 stored and true delivered 2097.27 uA against a 2097 uA hard limit.)"""
+    f = dac.full_for(full, ppm)
+    assert f * 10**6 >= full * ppm and f - full * ppm / 1e6 < 1 + full * 1e-5
+    got = dac.ua_for(code, f)
+    assert got * 4096 * 10**6 >= code * full * ppm  # exact integers: never below
+    assert got - code * f / 4096 < 1
+    assert abs(full * ((ppm - 1000000) // 10 + 1)) < 2**30 and 4095 * f + 4095 < 2**30  # small ints on the rp2
 
 
 def test_words_follow_the_datasheet_register():

@@ -553,7 +553,9 @@ def test_selftest_with_a_scope_on_a_fresh_board_lifts_the_hold_to_the_limits_the
         assert [round(stored[ch][2] / 1e6, 3) for ch in (0, 1)] == [board_sim.DAC_GAIN[0], board_sim.DAC_GAIN[1]]
         hard_i = min(dac_held(10000, stored[ch][2]) for ch in (0, 1))  # x the lowest gain / 1.035
         hard_q = min(dac_held(10_000_000, stored[ch][2]) for ch in (0, 1))
-        assert hard_i == 9604 and hard_q == 9_604_000
+        # (the scope's pulse is reported rounded up, at most 1 uA above the code's current, so the gain the
+        # self-test takes is at most 1/4500 below the true one: 9601..9604 uA)
+        assert 9600 <= hard_i <= 9604 and hard_q == hard_i * 1000, (hard_i, hard_q)
         assert (i.held, i.dac_low, i.hard_i_max_ua, i.i_min_ua, i.i_max_ua) == (False, True, hard_i, 500, hard_i)
         assert i.q_max_pc == i.hard_q_max_pc == hard_q
     line = [s for s in said if s.startswith("soft limits now")]

@@ -220,7 +220,7 @@ result(rp=rp, out=out, r=[r, s.tx[hp.O_DETAIL]], dac=s.chans[0].vmon_dac)
     r = res[0]
     for ch in (0, 1):
         got, phys = r["out"][ch]
-        assert 0 <= phys - got < 1.0 + 10000 / 4096 * 0.001, (ch, got, phys)  # whole uA, rounded down
+        assert 0 <= got - phys < 1.0 + 10000 / 4096 * 0.001, (ch, got, phys)  # whole uA, rounded up: never below it
         assert abs(r["rp"][ch] - 10000) <= 20
     assert r["r"] == [hp.RES_OUT_OF_RANGE, hp.O_ARG + 12] and r["dac"] == corr[0][2]  # refused: unchanged
 
@@ -235,8 +235,8 @@ def test_dac_set_gain_scales_the_full_scale_within_small_ints():
     d = dac.MCP4822(Bus(), [lambda v=None: None], 2, dac.FULL_UA_MAX)
     for ppm in (dac.GAIN_PPM_MIN, 999990, 1000000, 1000010, dac.GAIN_PPM_MAX):
         d.set_gain(1, ppm)
-        assert abs(d.full[1] - dac.FULL_UA_MAX * ppm / 1e6) <= 1
-        assert abs(dac.FULL_UA_MAX * ((ppm - 1000000) // 10)) + 50000 < 2**30
+        assert 0 <= d.full[1] - dac.FULL_UA_MAX * ppm / 1e6 < 1  # rounded up (dac_mcp4822.full_for)
+        assert abs(dac.FULL_UA_MAX * ((ppm - 1000000) // 10 + 1)) < 2**30
         assert 4096 * d.full[1] < 2**30
     d.set_gain(1, 0)
     assert d.full == [dac.FULL_UA_MAX] * 2

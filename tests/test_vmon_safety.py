@@ -300,3 +300,32 @@ result(out=out)
         assert hi <= hard_i * dac / hp.VMON_DAC_PPM_MAX and hq <= hard_q * dac / hp.VMON_DAC_PPM_MAX, (dac, hi, hq)
         assert hi >= hard_i * dac / hp.VMON_DAC_PPM_MAX - 2 and hq >= hard_q * dac / hp.VMON_DAC_PPM_MAX - 2000, (dac,)
     assert [o[3] for o in res[0]["out"] if o[0] == hp.VMON_DAC_PPM_MAX] == [res[0]["out"][0][7]] * 3  # full at 1.035
+
+
+def test_the_held_limits_times_the_window_top_never_pass_the_hard_limits():
+    """stim._dac_limits holds the reported current and charge to the hard limits x stored gain /
+    VMON_DAC_PPM_MAX: for every stored gain of the window (10 ppm apart) and hard limits of any size,
+    the held limit x 1.035 never passes the hard limit x the stored gain (exact integers), so with the
+    reported current never below what the stored gain drives (tests/test_dac.py) the physical current
+    stays within the hard limit for any true gain up to 1.035."""
+    _, res, _ = run_fw(SETUP + """
+s, board, clock = make("steady")
+c = s.chans[0]
+s._dac_applied = True
+bad = []
+n = 0
+for hi, hq in ((10000, 10000000), (2097, 2097000), (99999, 99999999), (1, 1)):
+    s.hard_i = hi
+    s.hard_q = hq
+    ppm = hp.VMON_DAC_PPM_MIN
+    while ppm <= hp.VMON_DAC_PPM_MAX:
+        s._dac_limits(c, ppm)
+        n += 1
+        if c.hard_i_d * hp.VMON_DAC_PPM_MAX > hi * ppm or c.hard_q_d * hp.VMON_DAC_PPM_MAX > hq * ppm:
+            bad.append((hi, ppm, c.hard_i_d, c.hard_q_d))
+        if c.hard_i_d < hi * ppm // hp.VMON_DAC_PPM_MAX - hi // 5000 - 1:  # and not far below it (<= 200 ppm)
+            bad.append(("low", hi, ppm, c.hard_i_d))
+        ppm += 10
+result(bad=bad[:5], n=n)
+""")
+    assert res[0]["n"] == 4 * 7001 and res[0]["bad"] == [], res[0]

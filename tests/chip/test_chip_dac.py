@@ -8,6 +8,7 @@ previous pulse and settled before its gate opens; the current the firmware uses
 and reports is that code times the LSB."""
 
 import importlib.util
+import math
 
 import pytest
 
@@ -76,7 +77,7 @@ def test_every_pulse_of_a_run_has_its_code_written_and_settled_before_the_gate_o
         # what the stimulator drives is code x LSB: never above the command, short of it by under one LSB
         assert p["i_ua"] == code * lsb_ua(cfg) and i_cmd - lsb_ua(cfg) < p["i_ua"] <= i_cmd
         # and that delivered current is what the firmware uses (Rp) and reports, to the nearest uA
-        assert di == dac.ua_for(code, cfg.AMP_UA_AT_FULL) == int(p["i_ua"] + 0.5)
+        assert di == dac.ua_for(code, cfg.AMP_UA_AT_FULL) == math.ceil(p["i_ua"])  # rounded up
 
 
 def test_stop_writes_code_0_and_a_latched_channel_is_left_at_0(on_board, cfg):
