@@ -117,7 +117,7 @@ def test_rp_of_resistors_matches_within_one_adc_count(on_board, cfg, i0, t0):
         # the stimulator drives what the DAC code says (never more than asked, less by under one 2.44 uA
         # step), and the firmware takes that delivered current (rounded to 1 uA) as the truth
         assert p["i_ua"] == dac_ua(cfg, i0) and i0 - cfg.AMP_UA_AT_FULL / 4096 < p["i_ua"] <= i0
-        assert di == int(p["i_ua"] + 0.5)  # half up, as dac_mcp4822.ua_for
+        assert di == math.ceil(p["i_ua"])  # rounded up, as dac_mcp4822.ua_for
         # Rp = Vp / I_delivered: within one ADC count of the load itself
         expect = model_ohm(loads[ch], t0)
         assert abs(rp - expect) <= count_ohm(cfg, i0) + 1, (ch, rp, expect)

@@ -5,6 +5,8 @@ its 64-byte interrupt IN and OUT endpoints, reads the report descriptor, drives 
 run with commands sent as OUT reports, and the host's protocol decoder
 (host/protocol.py) reads the telemetry of that run from the IN reports."""
 
+import math
+
 import hid_protocol as hp
 import sensation_core as sc
 from steadytouch.protocol import Ack, Commands, Telemetry, decode
@@ -51,7 +53,7 @@ def test_a_run_driven_over_hid_out_and_read_by_the_host_decoder(chip, cfg):
     assert len(fired) == len(pulses) >= 2 * (frames - 2)  # commands land in the first frames
     for t, p in zip(fired, pulses):
         assert (t.channel, t.t_us * 1000) == (p["ch"], p["fall_ns"] - p["rise_ns"])  # the width the gate had
-        assert t.i_ua == int(p["i_ua"] + 0.5)  # the telemetry carries the current the DAC set (delivered)
+        assert t.i_ua == math.ceil(p["i_ua"])  # (rounded up) the telemetry carries the current the DAC set (delivered)
         assert t.stop == hp.STOP_NONE and t.flags & hp.FLAG_ARMED
     # the decoder's Rp is the firmware's: the last frame's channel state read over the REPL
     chans, dropped = rows
