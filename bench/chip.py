@@ -20,7 +20,7 @@ tau 450 us); 'fast+skin' runs MODE_FAST with a skin model while Rp jumps between
 20 and 40 kohm on every pulse (the model's worst case).
 
 Run: .venv/bin/python bench/chip.py [--frames 10] [--configs 1@50,2@50,2@100,4@50]
-     [--modes open,charge,energy,pwlinear,akhtar,fast,fast+skin] [--widths 200,1000,2000,tmax]
+     [--modes open,charge,energy,pwlinear,akhtar,fast,fast+skin] [--widths 200,1000,2000,tmax] [--ramp]
 (`tmax`: the longest soft t_max the configuration accepts, hid_protocol.t_max_fitting;
 needs ../shared/emulator and Node >= 20, like `make chip`).
 """
@@ -78,7 +78,13 @@ def t_max(n, rate, cfg, model=0):
     return min(cfg.HARD_T_MAX_US, hp.t_max_fitting(rate, n, model))
 
 
-def bench(host, cfg, configs, modes, widths, frames, warm=3):
+# --ramp: every channel is put in the ramp after a mode change (stim._MS = 2, word 36 of c.v) before
+# each frame, so every raise takes the ramp's capped pulse (Akhtar, FAST: Eq. 4 again, _from_q): that
+# path's cost (it runs only in the pulses after SET_MODE while armed). Outside the frame, not timed.
+RAMP = "    for c in s.chans:\n        c.v[36] = 2\n    s.run(1)\n"
+
+
+def bench(host, cfg, configs, modes, widths, frames, warm=3, ramp=False):
     rows = []
     for n, rate in configs:
         chip = host.boot(host.image)
@@ -94,7 +100,8 @@ def bench(host, cfg, configs, modes, widths, frames, warm=3):
                     continue  # the device refuses it, or measured already
                 put_loads(chip, n, skin=m)
                 w0 = time.time()
-                out = chip.exec(setup_script(n, rate, MODES[name], t0, skin=m) + MEASURE.format(warm=warm, frames=frames),
+                measure = MEASURE.replace("    s.run(1)\n", RAMP) if ramp else MEASURE
+                out = chip.exec(setup_script(n, rate, MODES[name], t0, skin=m) + measure.format(warm=warm, frames=frames),
                                 timeout_ms=120000)
                 loop, pulse, work, overruns, errors, stops, dts = ast.literal_eval(out.strip().splitlines()[-1])
                 chip.take()
@@ -131,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--configs", default="1@50,2@50,2@100,4@50", help="channels@rate_hz, comma-separated")
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--widths", default="200,1000,2000,tmax")
+    ap.add_argument("--ramp", action="store_true", help="every channel in the ramp after a mode change (stim._MS): "
+                    "its capped pulses' cost")
     a = ap.parse_args(argv)
     try:
         configs = [tuple(int(v) for v in x.split("@")) for x in a.configs.split(",")]
@@ -155,7 +164,7 @@ def main(argv=None):
     except ChipUnavailable as e:
         sys.exit(f"bench/chip.py: {e}")
     try:
-        rows = bench(host, cfg, configs, modes, widths, a.frames)
+        rows = bench(host, cfg, configs, modes, widths, a.frames, ramp=a.ramp)
     finally:
         host.close()
     print(table(rows, a.frames))

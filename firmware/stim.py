@@ -70,10 +70,12 @@ _C_K_IMIN = const(1)  # its soft i_min, t_min (sensation_core._K_IMIN, _K_TMIN; 
 _C_K_TMIN = const(3)
 _C_W_BIAS = const(0x20000000)
 _C_MODE_CE = const(2)  # sc.MODE_CONSTANT_ENERGY: its T grows with Rp0 (the calibration takes the smaller reading)
+_C_MODE_AKHTAR = const(4)  # sc.MODE_AKHTAR and above (MODE_FAST): pulses on the mE curve (Eq. 4)
 if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_US != _C_T_FLOOR_US
         or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
-        or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT or sc.MODE_CONSTANT_ENERGY != _C_MODE_CE):
+        or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT or sc.MODE_CONSTANT_ENERGY != _C_MODE_CE
+        or sc.MODE_AKHTAR != _C_MODE_AKHTAR or sc.MODE_FAST != _C_MODE_AKHTAR + 1):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
 # The telemetry layout (bytes 0..O_RATE; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
@@ -187,7 +189,7 @@ _FT = const(32)
 _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: none)
 _CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SET_MODE takes Rp0
 _CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
-_MS = const(36)  # 1: the mode changed while armed; the new law's first raise is capped (_control)
+_MS = const(36)  # the mode changed while armed: 1 its first pulse, 2 ramping, 3 one proposal within the cap (_control)
 _NV = const(37)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
@@ -198,7 +200,7 @@ _NV = const(37)
 _C_FALL_LOG2 = const(5)
 _C_FALL_HOLD = const(16)
 # after SET_MODE while armed the new law's raises are capped at 1/2**this more than the pulse sent,
-# until it asks for no more (_control, _MS)
+# until two proposals in a row ask for no more (_control, _MS)
 _C_MODE_RAMP_LOG2 = const(2)
 
 
@@ -686,19 +688,31 @@ class Stimulator:
         if ms:  # a law the mode changed to: its readings were on the old law's pulses, of another shape
             cap = qs  # (Rp rises with the width and falls as the current rises), so its first pulse is
             if ms > 1:  # capped at the charge just sent, later raises at 1/4 more each, in the law's own
-                cap += qs >> _C_MODE_RAMP_LOG2  # current (its width shortened; at its t_min the current
-            if q > cap:  # that charge allows) until it asks for no more: each raise then rests on a
-                nt = cap // ni  # reading of the shape before, not of the old law's (review of session 22:
-                if nt < k[_C_K_TMIN]:  # +9.5 % in one pulse after a switch to constant energy from
-                    nt = k[_C_K_TMIN]  # 1097 uA; from a 100 us pulse after a gel, 1.9x its settled charge)
-                    ni = cap // nt
-                if ni < k[_C_K_IMIN]:  # (only with limits changed since: the same pulse again)
-                    ni = v[_I]
-                    nt = v[_T]
+                cap += qs >> _C_MODE_RAMP_LOG2  # shape, until two proposals in a row ask for no more:
+            if q > cap:  # each raise then rests on a reading of the shape before, not of the old law's
+                li = ni  # (review of session 22: +9.5 % after a switch to constant energy from 1097 uA;
+                lt = nt
+                if k[_C_K_MODE] >= _C_MODE_AKHTAR:  # 1.9-2.4x after the gel). Akhtar and FAST: the law's
+                    st = k[_C_K_ST]  # own pulse on the mE curve for that charge (Eq. 4 and its bounds; a
+                    ctl._from_q(cap << 4)  # pulse off the curve misleads FAST's secant: 1.2-1.4x, review
+                    ni = k[_C_K_I]  # of session 23), the proposal left as it was for telemetry and audit
+                    nt = k[_C_K_T]
+                    k[_C_K_I] = li
+                    k[_C_K_T] = lt
+                    k[_C_K_ST] = st
+                    if ni * nt < cap - (cap >> 5):  # held below it by a bound: the law's current instead
+                        ni = li
+                if ni == li or ni * nt > cap:  # the law's current (I fixed), a shorter pulse; at its
+                    nt = cap // ni  # t_min the current that charge allows (a pulse sent had
+                    if nt < k[_C_K_TMIN]:  # I >= i_min and T >= t_min: cap // t_min >= i_min)
+                        nt = k[_C_K_TMIN]
+                        ni = cap // nt
                 q = ni * nt
                 v[_MS] = 2
+            elif ms == 3:  # the second in a row within the cap: the ramp ends (one wild reading asking
+                v[_MS] = 0  # less must not end it: x 9 did, and the next raise was 5.4x the pulse before)
             else:
-                v[_MS] = 0
+                v[_MS] = 3
         fn = v[_FN]
         if fn > 0:
             fn -= 1

@@ -574,6 +574,54 @@ def test_a_mode_change_ramps_to_the_new_laws_charge_without_overshoot(old, new):
     assert res.checked >= 250 and res.mismatches == []
 
 
+def test_a_mode_change_to_fast_ramps_on_its_own_curve():
+    """Review of session 23 (HIGH): the ramp's capped pulses kept the new law's current and only
+    shortened the width, off the mE curve; MODE_FAST's secant, built from consecutive pulses taken to
+    lie on it, then asked up to 1.4x its settled charge and the 1/4 step let it through (constant
+    energy -> FAST during a peel: 1.20x, 508 uA x 3340 us where FAST settles at 701 x 2022). Akhtar's
+    and FAST's capped pulse is now the law's own pulse for that charge (Eq. 4): no pulse passes the
+    larger of the pulse before and FAST's settled charge, and FAST settles where a run armed in it does."""
+    reports, _, _ = run_fw("""
+        for first in (sc.MODE_FAST, sc.MODE_CONSTANT_ENERGY):
+            s, board, usb, clock = make("peel", n=1)
+            start(s, mode=first)
+            s.run(300)
+            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_FAST)) == 0
+            s.run(150)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    ref, run = [[t.i_ua * t.t_us for t in tel[k * 450:(k + 1) * 450]] for k in (0, 1)]
+    settled = ref[-1]
+    assert run[299] < 0.7 * settled  # constant energy sat well below what FAST wants on the peeled skin
+    assert max(run[300:]) <= max(run[299], settled) * 1.02, (max(run[300:]), run[299], settled)  # 1.20x before
+    assert all(abs(q - settled) <= settled * 0.01 for q in run[-40:])
+
+
+def test_one_wild_reading_does_not_end_a_mode_changes_ramp():
+    """Review of session 23 (MEDIUM): the ramp ended on the first proposal within its cap, and one
+    reading x 9 (below the electrode-off latch) made the law ask for less: the ramp ended and two
+    genuine readings on the short pulse sent 5.4x the pulse before, 1.095x the law's settled charge.
+    Now two proposals in a row within the cap end it: no pulse is above the run without the reading."""
+    reports, _, _ = run_fw("""
+        for g in (1.0, 9.0):
+            s, board, usb, clock = make("gel-step", n=1)
+            start(s, mode=sc.MODE_AKHTAR)
+            s.run(135)
+            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
+            s.run(1)
+            board.glitch[0] = g
+            s.run(124)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 260:(k + 1) * 260]] for k in (0, 1)]
+    assert all(t.stop == hp.STOP_NONE for t in tel)
+    worst = max(b / c for b, c in zip(bad[136:], clean[136:]))
+    assert worst <= 1.03, (worst, bad[136:150], clean[136:150])  # 5.41x before
+    assert max(bad[136:]) <= clean[-1] * 1.02
+
+
 def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     """Calibration pulses pair when they are in consecutive frames, as audit sees them: a DISARM and
     an ARM between two frames do not part them (second review of session 22: 57 of 60 pulses were
