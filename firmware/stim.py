@@ -190,7 +190,8 @@ _FN = const(33)  # ... and the pulses left in which no raise goes past it (0: no
 _CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SET_MODE takes Rp0
 _CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
 _MS = const(36)  # the mode changed while armed: 1 its first pulse, 2 ramping, 3 one proposal within the cap (_control)
-_NV = const(37)
+_MN = const(37)  # ... and the pulses left before the ramp ends whatever the law asks (_C_MODE_RAMP_MAX)
+_NV = const(38)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -200,8 +201,13 @@ _NV = const(37)
 _C_FALL_LOG2 = const(5)
 _C_FALL_HOLD = const(16)
 # after SET_MODE while armed the new law's raises are capped at 1/2**this more than the pulse sent,
-# until two proposals in a row ask for no more (_control, _MS)
+# until two proposals in a row ask for no more (_control, _MS), or for at most _C_MODE_RAMP_MAX
+# pulses: a law that swings above and below the cap on every pulse (Rp that flips: the chip
+# harness's 20 <-> 40 kohm load in constant energy) would keep it forever, and its raises rest on
+# readings of its own pulses by then; 128 pulses hold 64 raises of 1/4, 1.25**64 > 2**25 / 20: more
+# than any ramp between two pulses within the limits (q_max <= 2**25 pC, T >= 20 us, I >= 1 uA)
 _C_MODE_RAMP_LOG2 = const(2)
+_C_MODE_RAMP_MAX = const(128)
 
 
 def _vmon_product_max(uv):
@@ -685,6 +691,12 @@ class Stimulator:
         q = ni * nt
         qs = v[_I] * v[_T]  # the pulse just sent
         ms = v[_MS]
+        if ms:
+            n = v[_MN] - 1
+            v[_MN] = n
+            if n <= 0:
+                ms = 0
+                v[_MS] = 0
         if ms:  # a law the mode changed to: its readings were on the old law's pulses, of another shape
             cap = qs  # (Rp rises with the width and falls as the current rises), so its first pulse is
             if ms > 1:  # capped at the charge just sent, later raises at 1/4 more each, in the law's own
@@ -1001,6 +1013,7 @@ class Stimulator:
                     c.ctl.calibrate(c.i0, c.t0, hp.cal_rp0(c.v[_CLO], c.v[_CHI], mode == sc.MODE_CONSTANT_ENERGY),
                                     c.x, c.y)
                     c.v[_MS] = 1  # (the new law's first raise is capped: _control)
+                    c.v[_MN] = _C_MODE_RAMP_MAX
                 c.ctl.set_mode(mode)
                 k += 1
             if rate:

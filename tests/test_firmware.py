@@ -622,6 +622,32 @@ def test_one_wild_reading_does_not_end_a_mode_changes_ramp():
     assert max(bad[136:]) <= clean[-1] * 1.02
 
 
+def test_a_mode_changes_ramp_ends_after_its_longest_even_when_the_law_swings():
+    """A law that swings above and below the ramp's cap on every pulse (readings that flip x 1.5
+    every other frame, constant energy) never gives two proposals in a row within it: the ramp
+    ends after stim._C_MODE_RAMP_MAX (128) pulses, and the law's raises are capped at 1/4 a pulse
+    until then (a later genuine rise would otherwise be slowed for as long as the channel runs)."""
+    _, res, _ = run_fw("""
+        s, board, usb, clock = make("steady", n=1)
+        start(s, mode=sc.MODE_FAST)
+        s.run(10)
+        assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
+        ms = []
+        q = []
+        for k in range(160):
+            board.glitch[0] = 1.5 if k % 2 else 1.0
+            q.append(s.chans[0].i * s.chans[0].t)
+            s.run(1)
+            ms.append(s.chans[0].v[36])
+        result(ms=ms, q=q, stop=s.chans[0].stop)
+    """)
+    ms, q = res[0]["ms"], res[0]["q"]
+    assert res[0]["stop"] == hp.STOP_NONE
+    assert ms[:126].count(0) == 0 and 2 in ms[:126]  # still ramping: the swing never ends it by itself
+    assert ms[127:] == [0] * len(ms[127:]), ms[120:135]  # ended by the count
+    assert all(b <= a + (a >> 2) for a, b in zip(q[:128], q[1:128]))
+
+
 def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     """Calibration pulses pair when they are in consecutive frames, as audit sees them: a DISARM and
     an ARM between two frames do not part them (second review of session 22: 57 of 60 pulses were

@@ -146,3 +146,41 @@ def test_cpu_work_per_channel_is_within_its_bound(chip, cfg, n, rate, mode, t0, 
     assert (overruns, errors, stops) == (0, 0, [0] * n)
     assert len(work) == 5 and min(work) > 0
     assert bound_us <= 1000 and max(work) <= bound_us * n
+
+
+RAMP = """
+import hid_protocol as hp
+for f in range(6):
+    s.run(1)
+o0 = s.overruns
+assert s.handle(hp.cmd_set_mode(bytearray(64), {new}), time.ticks_us()) == hp.RES_OK
+s.sync_outputs()
+rows = []
+for f in range(140):
+    c = s.chans[0]
+    q = c.i * c.t  # the pulse this frame sends
+    s.last_host = time.ticks_us()  # (the host is there: no keep-alive stop over the 140 frames)
+    s.run(1)
+    rows.append((q, c.v[36], c.i * c.t, s.loop_us))
+print((rows, s.overruns - o0, s.errors, [c.stop for c in s.chans]))
+"""
+
+
+@pytest.mark.parametrize("old, new", [(sc.MODE_CONSTANT_ENERGY, sc.MODE_FAST), (sc.MODE_FAST, sc.MODE_CONSTANT_ENERGY)])
+def test_a_mode_change_ramps_in_on_the_chip(chip, cfg, old, new):
+    """SET_MODE while armed on the real firmware and board (viper on armv6m, the skin model on,
+    the load's Rp jumping 20 <-> 40 kohm every pulse): the ramp (stim._MS: 2 while a raise is
+    capped, FAST's capped pulse from Controller._from_q) runs in the frame with no overrun and no
+    error, no pulse after the switch carries more than the pulse before it by more than 1/4 while
+    it lasts, the first not more than the pulse before it at all, and the ramp ends."""
+    script = frame_setup(chip, cfg, 2, 50, old, 200, skin=True) + RAMP.format(new=new)
+    rows, overruns, errors, stops = chip.eval_out(script)
+    assert (overruns, errors, stops) == (0, 0, [0, 0])
+    sent = [r[0] for r in rows]  # the pulse each frame sent (frame 0: the old law's last)
+    assert sent[1] <= sent[0]  # the new law's first pulse: capped at the charge just sent
+    ms = [r[1] for r in rows]  # stim._MS after each frame
+    end = ms.index(0) if 0 in ms else len(ms)
+    assert all(b <= a + (a >> 2) for a, b in zip(sent[:end + 1], sent[1:end + 1]))  # raises of at most 1/4 a pulse
+    assert 2 in ms and ms[-1] == 0, ms  # a capped raise happened, and the ramp ended (constant energy on this
+    # load swings above and below the cap on every pulse: at the latest after stim._C_MODE_RAMP_MAX pulses)
+    assert max(r[3] for r in rows) < 20000
