@@ -701,6 +701,15 @@ class Stimulator:
             cap = qs  # (Rp rises with the width and falls as the current rises), so its first pulse is
             if ms > 1:  # capped at the charge just sent, later raises at 1/4 more each, in the law's own
                 cap += qs >> _C_MODE_RAMP_LOG2  # shape, until two proposals in a row ask for no more:
+            fn = v[_FN]  # a fall's hold (below) waits while the ramp climbs back: it does not count
+            if fn > 0:  # down, and the ramp stops at the charge before the fall, in the new law's
+                fq = v[_FI] * v[_FT]  # shape (the old-shape pulse is never sent again); a pulse
+                if qs >= fq - (fq >> _C_FALL_LOG2):  # within 1/32 of it sent: the hold is done
+                    v[_FN] = 0  # (second review of session 23: the hold ran out mid-ramp and a
+                else:  # raise from below passed the pulse before a reading x 0.5's fall: 1.05x)
+                    v[_FN] = fn + 1
+                    if cap > fq:
+                        cap = fq
             if q > cap:  # each raise then rests on a reading of the shape before, not of the old law's
                 li = ni  # (review of session 22: +9.5 % after a switch to constant energy from 1097 uA;
                 lt = nt

@@ -25,6 +25,11 @@ from .protocol import COMMAND_WORDS, RESULT_WORDS, Ack, CalInfo, Commands, Info,
 from .transport import Transport, TransportError
 
 SEQ_MOD = 1 << 30
+# The current a board reports for a pulse is its DAC code's, rounded up to the µA: at most one DAC
+# step below the command, and a step is the full scale / 4096 — 2.44 µA at the realistic 10 mA, at
+# most 24.4 µA at the driver's largest full scale (dac_mcp4822.FULL_UA_MAX, 100 mA). A host that
+# waits for the report of a pulse it commanded accepts this far below it.
+DAC_STEP_MAX_UA = 25
 # SET_MODE refused for its rate byte (the frame does not fit): the ack's words
 _RATE_REFUSED = f"{COMMAND_WORDS[hp.CMD_SET_MODE]}: {RESULT_WORDS[hp.RES_OUT_OF_RANGE]} (byte {hp.O_ARG + 1})"
 

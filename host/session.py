@@ -24,11 +24,9 @@ import numpy as np
 import hid_protocol as hp
 import sensation_core as sc
 
-from .device import Device, vmon_warning
+from .device import DAC_STEP_MAX_UA, Device, vmon_warning
 from .protocol import Telemetry
 
-# a delivered pulse is at most one DAC step (10 mA / 4096 = 2.44 uA, whole uA) below the command
-DAC_STEP_UA = 3
 
 T_STEPS_US = list(range(200, 701, 50))
 STEP = 0.03  # relative change of I per key press
@@ -85,7 +83,7 @@ class Session:
             while (time.monotonic() < t_end or len(rps) < 3) and time.monotonic() < t_give_up:
                 rep = d.read(0.1)
                 if isinstance(rep, Telemetry) and rep.channel == self.ch and rep.t_us == t_us \
-                        and i_ua - DAC_STEP_UA <= rep.i_ua <= i_ua:  # delivered: the DAC rounds down
+                        and i_ua - DAC_STEP_MAX_UA <= rep.i_ua <= i_ua:  # delivered: up to a DAC step below
                     rps.append(rep.rp_ohm)
                     if rep.stop not in (hp.STOP_NONE,):
                         break

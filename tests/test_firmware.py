@@ -622,6 +622,31 @@ def test_one_wild_reading_does_not_end_a_mode_changes_ramp():
     assert max(bad[136:]) <= clean[-1] * 1.02
 
 
+def test_a_fall_just_before_a_mode_change_is_still_held_after_the_ramp():
+    """Second review of session 23 (MEDIUM): a reading x 0.5 two frames before a switch from
+    pulse-width-linear to constant energy made a fall (997 -> 145 us) and started the fall hold; the
+    ramp climbed back by 1/4 every two pulses, the hold ran out on the way, and a raise from below
+    (a reading on 858 us reads Rp low) passed the pulse before the fall: 1.051x the clean run. The
+    hold now waits while the ramp climbs, the ramp stops at the charge before the fall (in the new
+    law's shape) until a pulse within 1/32 of it was sent."""
+    reports, _, _ = run_fw("""
+        for g in (1.0, 0.5):
+            s, board, usb, clock = make("steady", n=1, ideal=False)
+            start(s, mode=sc.MODE_PULSE_WIDTH_LINEAR)
+            s.run(58)
+            board.glitch[0] = g
+            s.run(2)
+            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
+            s.run(80)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 140:(k + 1) * 140]] for k in (0, 1)]
+    assert min(bad[58:64]) < 0.3 * clean[58]  # the reading did make a large fall
+    worst = max(b / c for b, c in zip(bad[58:], clean[58:]))
+    assert worst <= 1.02, (worst, bad[60:100])  # 1.051 before
+
+
 def test_a_mode_changes_ramp_ends_after_its_longest_even_when_the_law_swings():
     """A law that swings above and below the ramp's cap on every pulse (readings that flip x 1.5
     every other frame, constant energy) never gives two proposals in a row within it: the ramp

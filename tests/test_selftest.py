@@ -699,3 +699,34 @@ def test_a_self_test_that_stores_nothing_never_raises_a_soft_limit(tmp_path, mon
         assert (i2.held, i2.hard_i_max_ua) == (False, LOW_I)  # the RAM gains put back: the hold stays lifted
         assert _soft(i2) == before, (_soft(i2), before, said)
     assert not (tmp_path / "vmon_cal.txt").exists()
+
+
+def test_the_scope_gains_window_top_is_checked_with_the_largest_gain_the_rounded_report_allows():
+    """Second review of session 23: the board reports the scope pulse's current rounded up, so the gain
+    from it is low by up to 1 uA in the current; a board of true gain 1.0359 at an 800 uA scope pulse
+    (100 kohm load) read as 1.0350, was accepted and stored, and drove 10 007 uA against the 10 000 uA hard
+    limit. The window's top is now checked against the current's lower bound (the report minus 1 uA):
+    every board whose true gain is above 1.035 is refused, whatever the pulse."""
+    import dac_mcp4822 as dac
+
+    full = 10000
+    for load in (10000, 100000, 400000):
+        i_ua, _ = st.scope_pulse(load, 48000)
+        code = dac.code_for(i_ua, full)
+        exact = code * full / 4096  # the current the code drives at a gain of 1
+        rep = dac.ua_for(code, full)
+        # accepted up to the top x (rep - 1) / exact (the report cannot tell a board there from one above
+        # the top: within 1 uA / the pulse's current, 0.025 % at 10 kohm, 0.25 % at 100 kohm) and from the
+        # bottom x rep / exact; every board above the top refused
+        top, bottom = 1.035 * (rep - 1) / exact, 0.965 * rep / exact
+        for g_true, ok in ((top - 2e-6, True), ((top + bottom) / 2, True), (bottom + 2e-6, True), (1.03501, False),
+                           (1.0359, False)):
+            mv = exact * g_true * load / 1000  # what the scope shows
+            if ok:
+                g = st.dac_gain_from_scope(0, mv, rep, load)
+                assert g <= g_true and g_true - g < g_true / rep + 1e-9
+            else:
+                with pytest.raises(st.SelfTestError, match="outside"):
+                    st.dac_gain_from_scope(0, mv, rep, load)
+    with pytest.raises(st.SelfTestError, match="a smaller load gives a larger pulse"):  # refused by the rounding alone
+        st.dac_gain_from_scope(0, 798.340 * 1.0349 * 100000 / 1000, 799, 100000)

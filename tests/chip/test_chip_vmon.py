@@ -75,10 +75,11 @@ def test_stored_on_the_chip_survives_a_reset_and_corrects_rp(chip_host, cfg, tmp
     assert abs(_rp(reps, 0) - want) <= 25, (_rp(reps, 0), want)
     # ch1's DAC told it delivers 1.02 x nominal: the code for 3000 uA is 3000 x 4096 / 10200 and the
     # current reported (and counted against the hard limits) is that code's delivered current
-    code1 = I_UA * 4096 // (cfg.AMP_UA_AT_FULL * DAC_PPM // 1000000)
+    full1 = -(-cfg.AMP_UA_AT_FULL * DAC_PPM // 1000000)  # rounded up, as dac_mcp4822.full_for (ppm on its 10 ppm grid)
+    code1 = I_UA * 4096 // full1
     assert chip.take()["dac_codes"][1] == code1
     i1 = {t.i_ua for t in reps if isinstance(t, Telemetry) and t.channel == 1 and t.i_ua}
-    assert i1 == {(code1 * cfg.AMP_UA_AT_FULL * DAC_PPM // 1000000 + 4095) // 4096}  # rounded up (dac_mcp4822.ua_for)
+    assert i1 == {(code1 * full1 + 4095) // 4096}  # rounded up (dac_mcp4822.ua_for)
     # the emulated stage is nominal (it delivers code x 10000 / 4096): Rp reads low by the told gain
     assert abs(_rp(reps, 1) - R_OHM * code1 * cfg.AMP_UA_AT_FULL / 4096 / min(i1)) <= 25
     assert all(t.stop == hp.STOP_NONE for t in reps if isinstance(t, Telemetry) and t.i_ua)
