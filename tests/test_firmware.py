@@ -515,25 +515,34 @@ def test_a_mode_change_takes_rp0_again_for_its_own_law(cal_mode, mode, factor, a
     assert max(bad[4:]) <= max(clean[4:]) * 1.005, (max(bad[4:]), max(clean[4:]))
 
 
+def _switch_runs(old, new, g, at, switch, after, ideal=True):
+    """Two runs of one channel on steady skin, armed in mode `old`, SET_MODE to `new` after `switch`
+    frames, `after` frames more: without and with a reading x g on frame `at` (< switch). Returns
+    each run's telemetry (clean, with the reading)."""
+    reports, _, _ = run_fw(f"""
+        for g in (1.0, {g!r}):
+            s, board, usb, clock = make("steady", n=1, ideal={ideal!r})
+            start(s, mode={old})
+            s.run({at})
+            board.glitch[0] = g
+            s.run({switch - at})
+            assert apply(s, hp.cmd_set_mode(bytearray(64), {new})) == 0
+            s.run({after})
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    n = switch + after
+    assert len(tel) == 2 * n
+    return tel[:n], tel[n:]
+
+
 def test_a_mode_change_from_a_current_away_from_i0_sends_no_surge():
     """Third review of session 22 (MEDIUM): a reading x 1.03 on a calibration pulse (inside the
     window) lets MODE_AKHTAR settle at 1097 uA x 831 us; a SET_MODE to constant energy then applied
     the reading taken at 1097 uA to I0 (Rp falls as the current rises) and sent one pulse +9.5 %
     above the run without it, both readings on the old pulse agreeing. The new law's first pulse is
     now capped at the charge just sent, in its own current, so its raises rest on its own readings."""
-    reports, _, _ = run_fw("""
-        for g in (1.0, 1.03):
-            s, board, usb, clock = make("steady", n=1)
-            start(s, mode=sc.MODE_AKHTAR)
-            s.run(1)
-            board.glitch[0] = g
-            s.run(39)
-            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
-            s.run(20)
-            dump(usb)
-    """)
-    tel = [t for t in reports if isinstance(t, Telemetry)]
-    clean, bad = [tel[k * 60:(k + 1) * 60] for k in (0, 1)]
+    clean, bad = _switch_runs(sc.MODE_AKHTAR, sc.MODE_CONSTANT_ENERGY, 1.03, 1, 40, 20)
     assert bad[39].i_ua > 1080 and clean[39].i_ua < 1010  # the reading did move the current away from I0
     qc, qb = [[t.i_ua * t.t_us for t in run[40:]] for run in (clean, bad)]
     assert {t.i_ua for t in bad[41:]} == {1000}  # the new law's current at once, a shorter pulse first
@@ -629,19 +638,8 @@ def test_a_fall_just_before_a_mode_change_is_still_held_after_the_ramp():
     (a reading on 858 us reads Rp low) passed the pulse before the fall: 1.051x the clean run. The
     hold now waits while the ramp climbs, the ramp stops at the charge before the fall (in the new
     law's shape) until a pulse within 1/32 of it was sent."""
-    reports, _, _ = run_fw("""
-        for g in (1.0, 0.5):
-            s, board, usb, clock = make("steady", n=1, ideal=False)
-            start(s, mode=sc.MODE_PULSE_WIDTH_LINEAR)
-            s.run(58)
-            board.glitch[0] = g
-            s.run(2)
-            assert apply(s, hp.cmd_set_mode(bytearray(64), sc.MODE_CONSTANT_ENERGY)) == 0
-            s.run(80)
-            dump(usb)
-    """)
-    tel = [t for t in reports if isinstance(t, Telemetry)]
-    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 140:(k + 1) * 140]] for k in (0, 1)]
+    clean, bad = [[t.i_ua * t.t_us for t in run]
+                  for run in _switch_runs(sc.MODE_PULSE_WIDTH_LINEAR, sc.MODE_CONSTANT_ENERGY, 0.5, 58, 60, 80, False)]
     assert min(bad[58:64]) < 0.3 * clean[58]  # the reading did make a large fall
     worst = max(b / c for b, c in zip(bad[58:], clean[58:]))
     assert worst <= 1.02, (worst, bad[60:100])  # 1.051 before
