@@ -66,8 +66,7 @@ _C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_
 _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
-_C_K_IMIN = const(1)  # its soft i_min, t_min (sensation_core._K_IMIN, _K_TMIN; checked below)
-_C_K_TMIN = const(3)
+_C_K_TMIN = const(3)  # its soft t_min (sensation_core._K_TMIN; checked below)
 _C_W_BIAS = const(0x20000000)
 _C_MODE_CE = const(2)  # sc.MODE_CONSTANT_ENERGY: its T grows with Rp0 (the calibration takes the smaller reading)
 _C_MODE_AKHTAR = const(4)  # sc.MODE_AKHTAR and above (MODE_FAST): pulses on the mE curve (Eq. 4)
@@ -92,10 +91,10 @@ _c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the 
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
 _c.me_ua2ms, _c.mq_target_fc_per_ohm = 15, 16
 _c.set_mode(sc.MODE_FAST)
-if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_IMIN, _C_K_TMIN)] != [
-        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 1, 3]:
+if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_TMIN)] != [
+        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 3]:
     raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, "
-                      "_C_K_MODE, _C_K_IMIN, _C_K_TMIN, _C_W_BIAS")
+                      "_C_K_MODE, _C_K_TMIN, _C_W_BIAS")
 del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
