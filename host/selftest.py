@@ -401,7 +401,6 @@ def scope_dac_gain(d, ch: int, load_ohm: int, pulse, ask, timeout_s: float = 600
     return dac_gain_from_scope(ch, mv, nominal, load_ohm)
 
 
-
 def dac_gain_from_scope(ch: int, mv: float, nominal: int, load_ohm: int) -> float:
     """The DAC's gain from the scope's plateau mv (mV) across load_ohm at a pulse the board reported
     as nominal uA; SelfTestError (one line) outside the window a healthy board can need."""

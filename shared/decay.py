@@ -60,8 +60,8 @@ def ltau_q16(buf, lo: int, n: int, off_x16: int, dt_us: int) -> int:
         k += 1
     if sb <= 0 or sa <= sb:
         return 0
-    d = int(log2q(sa)) - int(log2q(sb))  # log2(Sa / Sb) in Q.16, > 0 (log2q is monotonic)
-    if d <= 0:
+    d = int(log2q(sa)) - int(log2q(sb))  # log2(Sa / Sb) in Q.16, >= 0 (log2q is monotonic)
+    if d <= 0:  # Sa, Sb too close for log2q to part them: no decay to read
         return 0
     lt = int(log2q(m * dt_us)) + _Q16_16 - int(log2q(d)) + _L_LN2_NEG
     return lt if lt > 0 else 0
