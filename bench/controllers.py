@@ -270,23 +270,24 @@ class Supervisor:
     lowers the charge I x T (or keeps it) is sent at once; one that raises it is held one
     pulse (the pulse before is sent again), then the smaller of the two proposals in a row
     is sent, but within FALL_HOLD pulses of a fall of more than 1/32 not past the pulse before it
-    until that pulse is sent again. The controller is told the pulse sent (Controller.delivered) before each update,
-    as the firmware does."""
+    until that pulse is sent again. The controller is told the pulse sent and its status bits (the bounds it was
+    proposed at; Controller.delivered) before each update, as the firmware does."""
 
     FALL_LOG2, FALL_HOLD = 5, 16  # (stim._C_FALL_LOG2, _C_FALL_HOLD)
 
-    def __init__(self, i_ua, t_us):
-        self.i_ua, self.t_us = i_ua, t_us  # the pulse to send next
+    def __init__(self, i_ua, t_us, status=sc.ST_OK):
+        self.i_ua, self.t_us, self.s = i_ua, t_us, status  # the pulse to send next and its status
         self.held = False
-        self.p_i, self.p_t = 0, 0  # the held proposal
-        self.f_i, self.f_t, self.f_n = 0, 0, 0  # the pulse before a large fall, pulses left to hold raises below it
+        self.p_i, self.p_t, self.p_s = 0, 0, 0  # the held proposal
+        self.f_i, self.f_t, self.f_s, self.f_n = 0, 0, 0, 0  # the pulse before a large fall, pulses left to hold
+        # raises below it
 
-    def propose(self, i_ua, t_us):
+    def propose(self, i_ua, t_us, status):
         """The controller's next pulse (0, 0: stopped); sets the pulse to send. After a fall of
         more than 1/32 in charge no raise goes past the pulse before it for FALL_HOLD pulses, or
         until it is sent again (readings on it are the two-in-a-row rule's to judge)."""
         if i_ua == 0:
-            self.i_ua, self.t_us, self.held, self.f_n = 0, 0, False, 0
+            self.i_ua, self.t_us, self.s, self.held, self.f_n = 0, 0, 0, False, 0
             return
         q = i_ua * t_us
         qs = self.i_ua * self.t_us
@@ -297,18 +298,18 @@ class Supervisor:
         if q <= qs:
             self.held = False
             if self.f_n == 0 and q < qs - (qs >> self.FALL_LOG2):
-                self.f_i, self.f_t, self.f_n = self.i_ua, self.t_us, self.FALL_HOLD
+                self.f_i, self.f_t, self.f_s, self.f_n = self.i_ua, self.t_us, self.s, self.FALL_HOLD
         elif self.held:
             if self.p_i * self.p_t < q:
-                i_ua, t_us = self.p_i, self.p_t
+                i_ua, t_us, status = self.p_i, self.p_t, self.p_s
             self.held = False
             if self.f_n > 0 and i_ua * t_us > self.f_i * self.f_t:
-                i_ua, t_us = self.f_i, self.f_t
+                i_ua, t_us, status = self.f_i, self.f_t, self.f_s
         else:
             self.held = True
-            self.p_i, self.p_t = i_ua, t_us
+            self.p_i, self.p_t, self.p_s = i_ua, t_us, status
             return
-        self.i_ua, self.t_us = i_ua, t_us
+        self.i_ua, self.t_us, self.s = i_ua, t_us, status
 
 
 SUPERVISOR = False  # --supervisor: bench.run's default for `supervisor`
@@ -358,7 +359,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             c.set_skin(*skin.fit(pulses).args())
             FIT_INFO.update(trusted=True)
     h_target, tau = e.h, 0.0
-    sup = Supervisor(c.i_ua, c.t_us) if supervisor else None
+    sup = Supervisor(c.i_ua, c.t_us, c.status) if supervisor else None
     rows = []
     measured = []  # with a board: the rows as the controller sees them (delivered I, measured Rp and mQ)
     true_rp = []  # ... and the electrode's true end-of-pulse Rp of each pulse (ohm; --surges)
@@ -377,7 +378,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
         if sup:
             i, t = sup.i_ua, sup.t_us
             if i:
-                c.delivered(i, t)  # the pulse sent (a held raise is not the controller's own output)
+                c.delivered(i, t, sup.s)  # the pulse sent and its bounds (a held raise is not the controller's own output)
         else:
             i, t = c.i_ua, c.t_us
         if i == 0:
@@ -387,7 +388,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
         if meter:
             di, rp, i_true, rp_true = meter.pulse(i, t)
             if di != i:
-                c.delivered(di, t)  # the firmware tells the controller what the board delivered
+                c.delivered(di, t, c.status)  # the firmware tells the controller what the board delivered
             mq = (i_true * t - Y) * 1000 / (rp_true - X) if math.isfinite(rp_true) else float("nan")
             rows.append((k, i, t, rp, mq, c.status))
             measured.append((k, di, t, rp, (di * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan"), c.status))
@@ -396,7 +397,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             if mode == ORACLE and c.i_ua > 0:
                 oracle_pulse(c, e, i * t)
             if sup:
-                sup.propose(c.i_ua, c.t_us)
+                sup.propose(c.i_ua, c.t_us, c.status)
             continue
         rp_k = e.rp_kohm(i, t) * 1000
         if not math.isfinite(rp_k) or rp_k > 1e9:
@@ -409,7 +410,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
         if mode == ORACLE and c.i_ua > 0:
             oracle_pulse(c, e, i * t)
         if sup:
-            sup.propose(c.i_ua, c.t_us)
+            sup.propose(c.i_ua, c.t_us, c.status)
     if target_true is not None:
         FIT_INFO["measured"] = (np.array(measured, dtype=float).reshape(-1, 6), c.mq_target_fc_per_ohm)
         FIT_INFO["true_rp"] = true_rp

@@ -9,7 +9,7 @@ bench_sc.py's scenario c), timed with ticks_us on the emulated clock less the em
 timing window:
 - `update`: `c.update(rp)` alone, the bound method fetched once (as bench_sc.py);
 - `frame`: what stim.Stimulator._control spends in the core for a channel:
-  `ctl.i_ua = c.di`, `ctl.t_us = c.dt` (properties over the words `stim._control` stores
+  `ctl.i_ua = c.di`, `ctl.t_us = c.dt`, `ctl.status = c.ds` (properties over the words `stim._control` stores
   by ptr32 since session 16: this bench's figure is an upper bound), `ctl.update(c.rp)`, then
   `ctl.i_ua`, `ctl.t_us` read,
   from a plain function, the controller an attribute of a channel object (the
@@ -58,6 +58,7 @@ class Chan:  # what stim's _control and _measure read of a channel
         self.ctl = ctl
         self.di = 0
         self.dt = 0
+        self.ds = 0  # the status of the pulse delivered
         self.rp = 0
         self.vp = 0
 
@@ -75,6 +76,7 @@ def control(ch):  # the core's part of stim.Stimulator._control for one channel
     ctl = ch.ctl
     ctl.i_ua = ch.di  # delivered(), inline as in _control
     ctl.t_us = ch.dt
+    ctl.status = ch.ds
     st = ctl.update(ch.rp)
     ni = ctl.i_ua
     nt = ctl.t_us
@@ -113,6 +115,7 @@ def main():
         for k in range(N):
             ch.rp = seq[k % L]
             ch.di = ch.ctl.i_ua
+            ch.ds = ch.ctl.status
             ch.dt = ch.ctl.t_us
             t0 = tu()
             v = control(ch)
@@ -152,6 +155,7 @@ def cpython_hashes(n):
         for k in range(n):
             ch.rp = seq[k % len(seq)]
             ch.di = ch.ctl.i_ua
+            ch.ds = ch.ctl.status
             ch.dt = ch.ctl.t_us
             h2 = (h2 * 31 + g["control"](ch)) & 0xFFFFF
         out.append((h, h2))

@@ -44,7 +44,8 @@ except ImportError:  # CPython: no heap lock
 
 
 # 0.2.0: GET_INFO's hard fields are the limits in force (held); 0.3.0: GET_INFO page 1 (the board's own)
-FW_VERSION = (0, 3, 0)
+# 0.4.0: telemetry O_SENT_STATUS (the bounds of the pulse delivered: the controller is told them)
+FW_VERSION = (0, 4, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
@@ -67,6 +68,9 @@ _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; c
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
 _C_K_TMIN = const(3)  # its soft t_min (sensation_core._K_TMIN; checked below)
+_C_ST_I_BOUND = const(0x003)  # sc.ST_I_MIN | sc.ST_I_MAX
+_C_ST_T_MIN = const(0x004)
+_C_ST_Q_MAX = const(0x010)
 _C_W_BIAS = const(0x20000000)
 _C_MODE_CE = const(2)  # sc.MODE_CONSTANT_ENERGY: its T grows with Rp0 (the calibration takes the smaller reading)
 _C_MODE_AKHTAR = const(4)  # sc.MODE_AKHTAR and above (MODE_FAST): pulses on the mE curve (Eq. 4)
@@ -74,17 +78,18 @@ if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_U
         or sc.ST_FAULT_MASK != _C_FAULT_MASK or sc.RP_MIN_OHM != _C_RP_MIN_OHM
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
         or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT or sc.MODE_CONSTANT_ENERGY != _C_MODE_CE
-        or sc.MODE_AKHTAR != _C_MODE_AKHTAR or sc.MODE_FAST != _C_MODE_AKHTAR + 1):
+        or sc.MODE_AKHTAR != _C_MODE_AKHTAR or sc.MODE_FAST != _C_MODE_AKHTAR + 1
+        or sc.ST_I_MIN | sc.ST_I_MAX != _C_ST_I_BOUND or sc.ST_T_MIN != _C_ST_T_MIN or sc.ST_Q_MAX != _C_ST_Q_MAX):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
-# The telemetry layout (bytes 0..O_RATE; the rest stays 0) that the viper writer
+# The telemetry layout (bytes 0..O_SENT_STATUS + 1; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
 # compares the two); its offsets, type and flag values are checked at import.
-_TEL_FMT = "<BBBBiiHHiiiiiHHHHHBB"
+_TEL_FMT = "<BBBBiiHHiiiiiHHHHHBBH"
 if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 and hp.O_SEQ == 4
         and hp.O_TIME == 8 and hp.O_I == 12 and hp.O_T == 14 and hp.O_VP == 16 and hp.O_RP == 20
         and hp.O_ME == 24 and hp.O_MQT == 28 and hp.O_MQL == 32 and hp.O_STATUS == 36 and hp.O_NEXT_I == 38
         and hp.O_NEXT_T == 40 and hp.O_OVERRUNS == 42 and hp.O_LOOP == 44 and hp.O_FLAGS == 46
-        and hp.O_RATE == 47 and struct.calcsize(_TEL_FMT) == 48 and hp.REP_TELEMETRY == 1
+        and hp.O_RATE == 47 and hp.O_SENT_STATUS == 48 and struct.calcsize(_TEL_FMT) == 50 and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 _c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the report read them
@@ -190,7 +195,15 @@ _CLO = const(34)  # the two readings that gave Rp0 (the smaller, the larger): SE
 _CHI = const(35)  # again from them for its mode (hid_protocol.cal_rp0)
 _MS = const(36)  # the mode changed while armed: 1 its first pulse, 2 ramping, 3 one proposal within the cap (_control)
 _MN = const(37)  # ... and the pulses left before the ramp ends whatever the law asks (_C_MODE_RAMP_MAX)
-_NV = const(38)
+# the controller's status bits (bounds) of each pulse the supervisor may send: the controller is told
+# the status of the pulse measured with its I and T before each update (MODE_FAST's step and skin model
+# take their path from it: the status of its own last proposal after a held pulse said "no bound"
+# where the pulse measured was at i_max, second review of session 23: +37 %)
+_SS = const(38)  # the pulse to send (_I, _T)
+_DS = const(39)  # the pulse delivered this frame (_DI, _DT; telemetry's O_SENT_STATUS)
+_PS = const(40)  # the held proposal (_PI, _PT)
+_FS = const(41)  # the pulse before the last fall (_FI, _FT)
+_NV = const(42)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -264,6 +277,8 @@ class Channel:
     hard_q_d = _word(_HQD)
     vmon_k = _word(_VK)
     vmon_o = _word(_VO)
+    sent_status = _word(_SS)  # the status bits of the pulse to send (_I, _T) ...
+    delivered_status = _word(_DS)  # ... and of the pulse delivered this frame (_DI, _DT)
 
     def __init__(self, ch, lim):
         self.v = array("i", [0] * _NV)
@@ -530,6 +545,7 @@ class Stimulator:
         ad = v[_AD]  # the delivered current is the truth: Rp, mQ and telemetry use it
         v[_DI] = 0
         v[_DT] = 0
+        v[_DS] = 0
         if v[_ARMED] == 0 or i <= 0:
             return 0
         if i > v[_HI] or t > v[_HT] or t < _C_T_FLOOR_US or i * t > v[_HQ]:
@@ -542,6 +558,7 @@ class Stimulator:
             return 0
         v[_DI] = ad
         v[_DT] = t
+        v[_DS] = v[_SS]
         if v[_OVL]:  # (self._overlap)
             v[_NS] = int(self._start(k, t))
         else:  # the simulated board allocates: its calls run outside the heap-locked section
@@ -680,13 +697,15 @@ class Stimulator:
             v[_CHI] = r1 + rp - v[_CLO]
             v[_CR] = 0
         else:
-            k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us): a held proposal was not what was measured
-            k[_C_K_T] = v[_DT]
+            k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us, ctl.status): a held proposal
+            k[_C_K_T] = v[_DT]  # was not what was measured, nor were its bounds
+            k[_C_K_ST] = v[_DS]
             if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
-        ni = k[_C_K_I]  # (ctl.i_ua, ctl.t_us)
+        ni = k[_C_K_I]  # (ctl.i_ua, ctl.t_us, ctl.status)
         nt = k[_C_K_T]
+        ns = k[_C_K_ST]
         q = ni * nt
         qs = v[_I] * v[_T]  # the pulse just sent
         ms = v[_MS]
@@ -717,16 +736,20 @@ class Stimulator:
                     ctl._from_q(cap << 4)  # pulse off the curve misleads FAST's secant: 1.2-1.4x, review
                     ni = k[_C_K_I]  # of session 23), the proposal left as it was for telemetry and audit
                     nt = k[_C_K_T]
+                    ns = k[_C_K_ST]  # (the capped pulse's bounds)
                     k[_C_K_I] = li
                     k[_C_K_T] = lt
                     k[_C_K_ST] = st
                     if ni * nt < cap - (cap >> 5):  # held below it by a bound: the law's current instead
                         ni = li
+                        ns = st
                 if ni == li or ni * nt > cap:  # the law's current (I fixed), a shorter pulse; at its
                     nt = cap // ni  # t_min the current that charge allows (a pulse sent had
-                    if nt < k[_C_K_TMIN]:  # I >= i_min and T >= t_min: cap // t_min >= i_min)
-                        nt = k[_C_K_TMIN]
-                        ni = cap // nt
+                    ns = (ns & _C_ST_I_BOUND) | _C_ST_Q_MAX  # I >= i_min and T >= t_min: cap // t_min
+                    if nt < k[_C_K_TMIN]:  # >= i_min); its bounds: the charge limited (by the ramp), the
+                        nt = k[_C_K_TMIN]  # law's current's bounds, or t_min (an off-curve pulse: MODE_FAST
+                        ni = cap // nt  # takes the paper's step from it)
+                        ns = _C_ST_T_MIN | _C_ST_Q_MAX
                 q = ni * nt
                 v[_MS] = 2
             elif ms == 3:  # the second in a row within the cap: the ramp ends (one wild reading asking
@@ -744,23 +767,28 @@ class Stimulator:
             if fn == 0 and q < qs - (qs >> _C_FALL_LOG2):  # a large fall: the pulse before it kept
                 v[_FI] = v[_I]
                 v[_FT] = v[_T]
+                v[_FS] = v[_SS]
                 v[_FN] = _C_FALL_HOLD
         elif v[_HELD]:
             if v[_PI] * v[_PT] < q:
                 ni = v[_PI]
                 nt = v[_PT]
+                ns = v[_PS]
                 q = ni * nt
             v[_HELD] = 0
             if fn > 0 and q > v[_FI] * v[_FT]:  # not past the pulse before a recent large fall
                 ni = v[_FI]
                 nt = v[_FT]
+                ns = v[_FS]
         else:
             v[_HELD] = 1
             v[_PI] = ni
             v[_PT] = nt
+            v[_PS] = ns
             return
         v[_I] = ni
         v[_T] = nt
+        v[_SS] = ns
 
     def _check_keepalive(self):
         """The host is overdue (frame checked it): every armed channel is latched."""
@@ -810,7 +838,7 @@ class Stimulator:
     @micropython.viper
     def _encode_telemetry(self, c):
         """Channel c's telemetry into its own report buffer (sent after the pulses):
-        bytes 0..47 of hid_protocol's layout, little-endian as its '<' formats (the
+        bytes 0..49 of hid_protocol's layout, little-endian as its '<' formats (the
         offsets are checked at import); the rest stays 0. Viper, because speed forces
         it: the fields go straight into the buffer, ~0.1 ms a channel less on the chip
         than one struct.pack_into. Every i32 field is within +-2**30; a u16 field
@@ -848,6 +876,7 @@ class Stimulator:
         v = int(self.loop_us)  # the previous frame's
         v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
         p32[11] = v | (f << 16) | (int(self.rate_hz) << 24)  # O_LOOP 44, O_FLAGS 46, O_RATE 47
+        p32[12] = cv[_DS] & 0xFFFF  # O_SENT_STATUS 48 (bytes 50, 51 stay 0)
         self.seq = (seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):
@@ -1001,6 +1030,7 @@ class Stimulator:
                     c.stop = hp.STOP_NONE
                     c.i = c.i0
                     c.t = c.t0
+                    c.v[_SS] = sc.ST_OK  # (the calibration pulse: the controller's I0, T0)
                 k += 1
             return self._ack(r, hp.RES_OK, 0)
         if cmd == hp.CMD_SET_MODE:

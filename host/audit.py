@@ -117,7 +117,7 @@ def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
                 c.stop(sc.ST_UNCALIBRATED)
             else:  # the calibration pulse again
                 cal_rp[ch] = rp
-                c.delivered(i0, t0)
+                c.delivered(i0, t0, c.status)  # (the device leaves the status as it is)
         else:
             c.stop(sc.ST_RP_LOW if rp < sc.RP_MIN_OHM else sc.ST_RP_HIGH)
     elif not c.calibrated:
@@ -129,6 +129,11 @@ def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
         for name, hi in (("i_ua", sc.I_LIMIT_UA), ("t_us", sc.T_LIMIT_US)):  # (a device never reports past them)
             if not 0 <= r[name] <= hi:
                 raise ValueError(f"{name}={r[name]} out of range 0..{hi}")
-        c.delivered(r["i_ua"], r["t_us"])
+        # the bounds of the pulse sent, as the device tells its controller (a recording before firmware 0.4.0
+        # has no sent_status: its firmware left the controller's own status, and so does the replay)
+        st = r.get("sent_status", c.status)
+        if st & ~sc.ST_BOUND_MASK or st < 0:
+            raise ValueError(f"sent_status={st} out of range (bits of 0x{sc.ST_BOUND_MASK:x})")
+        c.delivered(r["i_ua"], r["t_us"], st)
         c.update(r["rp_ohm"])
     return True

@@ -54,8 +54,8 @@ VMON_STATE_WORDS = {
     hp.VMON_STORED: "correction stored since boot",
 }
 
-_TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBB")  # bytes 0..47
-assert _TELEMETRY.size == 48
+_TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBBH")  # bytes 0..49
+assert _TELEMETRY.size == 50
 
 
 class ProtocolError(ValueError):
@@ -83,6 +83,9 @@ class Telemetry:
     loop_us: int
     flags: int
     rate_hz: int
+    # the status bits (bounds) of the pulse delivered in this frame, as the controller is told before its
+    # update (firmware 0.4.0; 0 before it and when no pulse): `audit` replays it
+    sent_status: int = 0
 
     @property
     def armed(self) -> bool:
@@ -237,6 +240,7 @@ class CalInfo:
 
 _WRAP = 1 << 30  # seq and time_us wrap here; 32-bit fields stay below it in magnitude
 _STATUS_BITS = sc.ST_BOUND_MASK | sc.ST_FAULT_MASK
+_SENT_BITS = sc.ST_BOUND_MASK  # (a pulse is never sent with a fault)
 _FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING
 
 
@@ -262,6 +266,7 @@ def _check_telemetry(t: Telemetry):
         v = getattr(t, name)
         _need(-_WRAP < v < _WRAP, name, v, "|x| < 2**30")
     _need(not t.status & ~_STATUS_BITS, "status", f"0x{t.status:x}", f"bits of 0x{_STATUS_BITS:x}")
+    _need(not t.sent_status & ~_SENT_BITS, "sent_status", f"0x{t.sent_status:x}", f"bits of 0x{_SENT_BITS:x}")
     _need(t.next_i_ua <= sc.I_LIMIT_UA, "next_i_ua", t.next_i_ua, f"0..{sc.I_LIMIT_UA}")
     _need(t.next_t_us <= sc.T_LIMIT_US, "next_t_us", t.next_t_us, f"0..{sc.T_LIMIT_US}")
     _need(not t.flags & ~_FLAG_BITS, "flags", f"0x{t.flags:x}", f"bits of 0x{_FLAG_BITS:x}")
@@ -325,6 +330,7 @@ def decode(report: bytes):
             seq=f[4], time_us=f[5], channel=f[1], mode=f[2], stop=f[3], i_ua=f[6], t_us=f[7], vp_mv=f[8],
             rp_ohm=f[9], me_ua2ms=f[10], mq_target_fc_per_ohm=f[11], mq_last_fc_per_ohm=f[12], status=f[13],
             next_i_ua=f[14], next_t_us=f[15], overruns=f[16], loop_us=f[17], flags=f[18], rate_hz=f[19],
+            sent_status=f[20],
         )
         _check_telemetry(t)
         return t

@@ -225,6 +225,7 @@ O_OVERRUNS = const(42)  # u16 saturating
 O_LOOP = const(44)  # u16 us, saturating
 O_FLAGS = const(46)
 O_RATE = const(47)
+O_SENT_STATUS = const(48)  # u16 the status bits (bounds) of the pulse delivered in this frame (0: none)
 # ack / info
 O_CMD = const(1)
 O_RESULT = const(2)

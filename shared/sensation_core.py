@@ -377,13 +377,13 @@ class Controller:
         self.skin_cp_pf = cp_pf
 
     @micropython.viper
-    def delivered(self, i_ua, t_us):
-        """Tell the controller the pulse actually delivered, when it differs from
-        its own last output (the firmware's supervisor may hold a proposal);
-        update() then measures mQ, and MODE_FAST its secant, against it (stim._control: inline).
-        A pulse past q_max gets the paper's step, and MODE_FAST forgets the pulses before it."""
+    def delivered(self, i_ua, t_us, status):
+        """The pulse delivered and its status bits where not the last output (the supervisor held or capped it):
+        update() measures mQ, MODE_FAST's secant and path on them (stim._control: inline; its own status
+        misled MODE_FAST: +37 %, docs/safety.md). Past q_max: the paper's step, MODE_FAST forgets the pulses before."""
         self.i_ua = i_ua
         self.t_us = t_us
+        self.status = status
 
     def stop(self, status):
         """Next pulse: none (i_ua = t_us = 0), with the given fault status."""

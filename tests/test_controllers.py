@@ -176,18 +176,22 @@ def test_bench_supervisor_is_the_firmwares_raise_rule():
     one pulse, then the smaller of the two proposals in a row, not past the pulse before a fall
     of more than 1/32 within 16 pulses of it until that pulse is sent again; a stop at once."""
     s = bench.Supervisor(1000, 1000)
-    seq = [((990, 1000), (990, 1000)),  # lower by 1 % (< 1/32): sent at once, no hold after it
-           ((1200, 1000), (990, 1000)),  # raise: held, the pulse before again
-           ((1100, 1000), (1100, 1000)),  # second raise in a row: the smaller of the two
-           ((1000, 1000), (1000, 1000)),  # lower by 9 % (> 1/32): at once; no raise past 1100 x 1000 now
-           ((1000, 1300), (1000, 1000)),  # raise: held
-           ((1500, 1000), (1100, 1000)),  # the smaller of two is 1000 x 1300, past the pulse before the fall
-           ((1300, 1000), (1100, 1000)),  # back at that pulse: the hold ends; this raise is held
-           ((1250, 1000), (1250, 1000)),  # the smaller of two in a row, both read on it
-           ((0, 0), (0, 0))]  # stopped
+    # each proposal with its own status bits (1..10): the pulse sent carries the status of the proposal it is
+    # (the controller is told it before the next update, as stim._control does)
+    seq = [((990, 1000, 1), (990, 1000, 1)),  # lower by 1 % (< 1/32): sent at once, no hold after it
+           ((1200, 1000, 2), (990, 1000, 1)),  # raise: held, the pulse before again
+           ((1100, 1000, 3), (1100, 1000, 3)),  # second raise in a row: the smaller of the two
+           ((1000, 1000, 4), (1000, 1000, 4)),  # lower by 9 % (> 1/32): at once; no raise past 1100 x 1000 now
+           ((1000, 1300, 5), (1000, 1000, 4)),  # raise: held
+           ((1500, 1000, 6), (1100, 1000, 3)),  # the smaller of two is 1000 x 1300, past the pulse before the fall
+           ((1300, 1000, 7), (1100, 1000, 3)),  # back at that pulse: the hold ends; this raise is held
+           ((1250, 1000, 8), (1250, 1000, 8)),  # the smaller of two in a row, both read on it
+           ((1300, 1000, 9), (1250, 1000, 8)),  # raise: held
+           ((1400, 1000, 10), (1300, 1000, 9)),  # the held proposal is the smaller: it is sent, with its status
+           ((0, 0, 0), (0, 0, 0))]  # stopped
     for prop, sent in seq:
         s.propose(*prop)
-        assert (s.i_ua, s.t_us) == sent, (prop, sent)
+        assert (s.i_ua, s.t_us, s.s) == sent, (prop, sent)
 
 
 def test_bench_run_through_the_supervisor_raises_only_after_a_held_pulse():

@@ -82,6 +82,8 @@ def test_the_corpus_is_what_it_claims():
         assert f"M,{mode} " in ops
     for k in ("S,", "D,", "X,", "V,", " L,", " C,"):
         assert k in ops
+    d = [o.count(",") for o in ops.split() if o.startswith("D,")]
+    assert d.count(2) > 100 and d.count(3) > 100  # delivered() with the status as it is, and with one told
     assert len(DATA["cases"]) > 4000 and len(DATA["bench"]) >= 140
 
 

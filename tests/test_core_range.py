@@ -157,7 +157,7 @@ def test_fast_ceiling_entry_intermediates_below_2_30(data):
     c.set_mode(CORE.MODE_FAST)
     i_k = data.draw(st.integers(lim.i_min_ua, min(lim.i_max_ua, lim.q_max_pc // lim.t_min_us)))
     t_k = data.draw(st.integers(lim.t_min_us, min(lim.t_max_us, lim.q_max_pc // i_k)))
-    c.delivered(i_k, t_k)
+    c.delivered(i_k, t_k, data.draw(st.integers(0, sc.ST_BOUND_MASK)))  # any bounds the supervisor may say
     c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
 
 
@@ -170,7 +170,7 @@ def test_fast_ceiling_entry_corrects_the_papers_current():
     paper, fast = CORE.Controller(*lim), CORE.Controller(*lim)
     for c in (paper, fast):
         c.calibrate(700, 1000, 34641, -1670, 186000)
-        c.delivered(388, 3255)
+        c.delivered(388, 3255, sc.ST_OK)  # (on the mE curve)
     fast.set_mode(CORE.MODE_FAST)
     assert paper.update(127069) == fast.update(127069) == sc.ST_T_MAX
     assert paper.i_ua == 252  # ceil(2 008 364 pC / 8000 us)
@@ -198,6 +198,6 @@ def test_a_delivered_pulse_past_q_max_keeps_every_intermediate_below_2_30(data):
         c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
     i_k = data.draw(st.integers(1, sc.I_LIMIT_UA))
     t_k = data.draw(st.integers(1, sc.T_LIMIT_US))
-    c.delivered(i_k, t_k)
+    c.delivered(i_k, t_k, data.draw(st.integers(0, sc.ST_BOUND_MASK)))  # any bounds the supervisor may say
     c.update(data.draw(st.integers(sc.RP_MIN_OHM, sc.RP_MAX_OHM)))
     assert c.i_ua * c.t_us <= lim.q_max_pc

@@ -151,7 +151,7 @@ FRAME_LOCK_SCRIPT = """
 import micropython, sensation_core as sc
 c = sc.Controller(500, 20000, 50, 2000, 20000000)
 c.calibrate(1000, 1000, 30000, -1670, 186000)
-assert "update" in c.__dict__  # bound once, on the instance (the frame stores delivered()'s two attributes itself)
+assert "update" in c.__dict__  # bound once, on the instance (the frame stores delivered()'s three attributes itself)
 
 
 def frame(n):

@@ -436,14 +436,48 @@ def test_the_recovery_from_a_wild_readings_fall_never_passes_the_charge_before_i
     assert max(bad) <= max(clean) * 1.005, (max(bad), max(clean), bad[at:at + 12])
 
 
-def _recording(tel, lim):
-    """A recording's header (the limits in force, the calibration start() sends) and rows, as
-    `steadytouch record` writes them, from one channel's telemetry: what `audit` reads."""
+def test_a_wild_reading_that_a_controllers_memory_carries_into_the_next_proposal_raises_nothing():
+    """Second review of session 23 (HIGH): MODE_FAST at its current bound (i_max 4000 uA, I0 3000 x 300 us,
+    after the gel drop): one reading x 3 asked 3551 uA x 214 us (held, the pulse at 4000 uA sent again); the
+    genuine reading on that pulse then asked 4000 x 89 where the law settles at 4000 x 65, and the smaller
+    of the two proposals was sent: +37 %. The cause: the controller was told the I and T of the pulse sent
+    but kept the status of its own last proposal ("no bound"), so MODE_FAST took its Newton prior path
+    (up to 4 paper steps) from a pulse measured at i_max. Now it is told that pulse's status too (stim's
+    _SS/_DS words; telemetry's sent_status), and `audit` replays the run bit-exact from it."""
+    from steadytouch.audit import audit
+
+    lim = (100, 4000, 20, 8000, 1500000)
+    reports, results, _ = run_fw(f"""
+        for g in (1.0, 3.0):
+            s, board, usb, clock = make("gel-step", n=1)
+            start(s, i0=3000, t0=300, y=167400, mode=sc.MODE_FAST, limits={lim})
+            s.run(150)
+            board.glitch[0] = g
+            s.run(30)
+            dump(usb)
+            result(lim=list(s.lim))
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    assert len(tel) == 360
+    clean, bad = [[t.i_ua * t.t_us for t in tel[k * 180:(k + 1) * 180]] for k in (0, 1)]
+    assert tel[149].i_ua == 4000 and tel[149].sent_status & sc.ST_I_MAX  # at the current bound, and told so
+    worst = max(b / c for b, c in zip(bad[150:], clean[150:]))
+    assert worst <= 1.02, (worst, bad[148:160], clean[148:160])  # 1.354 before
+    for k in (0, 1):
+        meta, rows = _recording(tel[k * 180:(k + 1) * 180], results[k]["lim"], (3000, 300, -1670, 167400))
+        res = audit(meta, rows)
+        assert res.checked >= 170 and not res.mismatches, res.mismatches[:3]
+
+
+def _recording(tel, lim, cal=(1000, 1000, -1670, 186000)):
+    """A recording's header (the limits in force, the calibration start() sends: I0, T0, x*, y*) and rows,
+    as `steadytouch record` writes them, from one channel's telemetry: what `audit` reads."""
     lim = dict(zip(("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc"), lim))
-    meta = {**{k: str(v) for k, v in lim.items()}, "i0_ua": "1000", "t0_us": "1000", "x_star_ohm": "-1670",
-            "y_star_pc": "186000"}
+    meta = {**{k: str(v) for k, v in lim.items()},
+            **{k: str(v) for k, v in zip(("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"), cal)}}
     rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
-             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us}
+             "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us,
+             "sent_status": t.sent_status}
             for t in tel]
     return meta, rows
 

@@ -19,6 +19,7 @@ RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they
     "mql": (-(2**29) + 1, 2**29 - 1),  # the measured mQ: within sensation_core's _MQ_CAP (a word + 2**29 holds it)
     "status": (0, 2**20), "ni": (0, 2**20), "nt": (0, 2**20), "over": (-3, 2**20), "loop": (-3, 2**20),
     "armed": (0, 1), "held": (0, 1), "keepalive_ms": (0, 5000), "cal": (0, 1), "rate": (10, 100),
+    "ds": (0, 2**20),
 }
 
 
@@ -52,7 +53,7 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
             ctl.mq_target_fc_per_ohm = v["mqt"]; ctl.mq_last_fc_per_ohm = v["mql"]; ctl.status = v["status"]
             ctl.i_ua = v["ni"]; ctl.t_us = v["nt"]; s.overruns = v["over"]; s.loop_us = v["loop"]
             c.armed = bool(v["armed"]); c.held = bool(v["held"]); s.keepalive_ms = v["keepalive_ms"]
-            c.cal_pulse = bool(v["cal"])
+            c.cal_pulse = bool(v["cal"]); c.delivered_status = v["ds"]
             s.rate_hz = v["rate"]
             for k in range(64):
                 s.tel[c.ch][k] = 0
@@ -67,7 +68,7 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
                              s.frame_t, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,
                              ctl.mq_target_fc_per_ohm, ctl.mq_last_fc_per_ohm if c.di else 0, ctl.status & 0xFFFF,
                              ctl.i_ua & 0xFFFF, ctl.t_us & 0xFFFF, hp.sat16(s.overruns), hp.sat16(s.loop_us), f,
-                             s.rate_hz)
+                             s.rate_hz, c.delivered_status & 0xFFFF)
             want.append(bytes(ref).hex())
             assert s.seq == (v["seq"] + 1) & 0x3FFFFFFF
         result(got=got, want=want)

@@ -148,6 +148,7 @@ def r_rps(r, n, rp0):
 
 def ops_cases(n=1500, seed=14):
     r = random.Random(seed)
+    r_st = random.Random(seed + 1)  # the statuses delivered() is told (its own stream: the other ops as before)
     got = []
     for _ in range(n):
         lim = r_limits(r)
@@ -161,7 +162,10 @@ def ops_cases(n=1500, seed=14):
         for rp in r_rps(r, r.randint(4, 40), cal[2]):
             x = r.random()
             if x < 0.04:
-                ops.append(op("D", r.randint(0, lim[1] + 5), r.randint(0, lim[3] + 5)))
+                d = (r.randint(0, lim[1] + 5), r.randint(0, lim[3] + 5))
+                x_st = r_st.random()  # the firmware's: a pulse's bounds (some with any bits; a third none: as it is)
+                ops.append(op("D", *d) if x_st < 0.3 else op("D", *d, r_st.randint(0, sc.ST_BOUND_MASK))
+                           if x_st < 0.9 else op("D", *d, r_st.randint(0, 0x1FF)))
             elif x < 0.06:
                 ops.append(op("X", r.choice([sc.ST_RP_HIGH, sc.ST_RP_LOW, sc.ST_Q_NONPOS])))
             elif x < 0.08:
@@ -233,7 +237,7 @@ def skin_cases(n=500, seed=15):
             if i == 0:
                 i, t = i0, t0
                 ops.append(op("D", i, t))
-                c.delivered(i, t)
+                c.delivered(i, t, c.status)
             a = max(contact, 1e-3)
             v = rp_float(i, t, rs, beta, s * h * a ** (beta - 1), cp * a) * (1 + r.gauss(0, noise))
             rp = int(round(min(v, 1e6)))
@@ -344,8 +348,8 @@ def record_bench(only=None):
         def set_skin(self, *a):
             return self._rec(op("S", *a), super().set_skin, *a)
 
-        def delivered(self, *a):
-            return self._rec(op("D", *a), super().delivered, *a)
+        def delivered(self, i, t, s):  # (the status as it is: replay's "D,i,t")
+            return self._rec(op("D", i, t) if s == self.status else op("D", i, t, s), super().delivered, i, t, s)
 
         def stop(self, s):
             return self._rec(op("X", s), super().stop, s)

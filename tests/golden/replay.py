@@ -6,7 +6,8 @@
 #   L,i_min,i_max,t_min,t_max,q_max   Controller(...) (first L) or set_limits(...)
 #   C,i0,t0,rp0,x,y                   calibrate(...)
 #   M,mode   S,rs,beta,cp             set_mode, set_skin
-#   D,i,t    X,status                 delivered, stop
+#   D,i,t[,status]  X,status          delivered (no status: the status as it is, as before
+#                                     firmware 0.4.0 told it), stop
 #   V,vp,i                            rp_from_vp (its result is the record)
 #   RP                                update(RP)  (a bare integer)
 # Record after each op: status,i_ua,t_us,mq_last,rp_ohm,me,mq_target,rp0,fast_jumps,
@@ -53,7 +54,7 @@ def run(line, out, c=None):
             elif k == "S":
                 c.set_skin(a[0], a[1], a[2])
             elif k == "D":
-                c.delivered(a[0], a[1])
+                c.delivered(a[0], a[1], a[2] if len(a) > 2 else c.status)
             elif k == "X":
                 c.stop(a[0])
             else:
