@@ -90,7 +90,8 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
         and hp.O_ME == 24 and hp.O_MQT == 28 and hp.O_MQL == 32 and hp.O_STATUS == 36 and hp.O_NEXT_I == 38
         and hp.O_NEXT_T == 40 and hp.O_OVERRUNS == 42 and hp.O_LOOP == 44 and hp.O_FLAGS == 46
         and hp.O_RATE == 47 and hp.O_SENT_STATUS == 48 and struct.calcsize(_TEL_FMT) == 50 and hp.REP_TELEMETRY == 1
-        and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8):
+        and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8
+        and hp.FLAG_MODE_SET == 16):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 _c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the report read them
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
@@ -203,7 +204,8 @@ _SS = const(38)  # the pulse to send (_I, _T)
 _DS = const(39)  # the pulse delivered this frame (_DI, _DT; telemetry's O_SENT_STATUS)
 _PS = const(40)  # the held proposal (_PI, _PT)
 _FS = const(41)  # the pulse before the last fall (_FI, _FT)
-_NV = const(42)
+_MC = const(42)  # 1: SET_MODE changed the law (calibrate again) since the last report of a pulse (FLAG_MODE_SET:
+_NV = const(43)  # two in one frame, FAST -> X -> FAST, left the mode as `audit` saw it but not the controller)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -279,6 +281,7 @@ class Channel:
     vmon_o = _word(_VO)
     sent_status = _word(_SS)  # the status bits of the pulse to send (_I, _T) ...
     delivered_status = _word(_DS)  # ... and of the pulse delivered this frame (_DI, _DT)
+    mode_set = _flag(_MC)
 
     def __init__(self, ch, lim):
         self.v = array("i", [0] * _NV)
@@ -857,6 +860,9 @@ class Stimulator:
             f |= 0x04  # FLAG_KEEPALIVE
         if cv[_CALP]:
             f |= 0x08  # FLAG_CALIBRATING
+        if cv[_MC] and di:  # (kept until a pulse is reported: `audit` replays pulses only)
+            f |= 0x10  # FLAG_MODE_SET
+            cv[_MC] = 0
         seq = int(self.seq)
         k = ptr32(ctl._k)  # ctl.mode, .mq_last_fc_per_ohm (+ bias), .status, .i_ua, .t_us: its words
         # REP_TELEMETRY, O_CH, O_MODE, O_STOP
@@ -1026,6 +1032,7 @@ class Stimulator:
                     c.v[_CN] = 0  # (_CR: a reading of the frame before pairs, as `audit` pairs them)
                     c.v[_FN] = 0  # (no fall to hold a raise below yet)
                     c.v[_MS] = 0
+                    c.v[_MC] = 0
                     c.held = False
                     c.stop = hp.STOP_NONE
                     c.i = c.i0
@@ -1051,6 +1058,7 @@ class Stimulator:
                     c.ctl.calibrate(c.i0, c.t0, hp.cal_rp0(c.v[_CLO], c.v[_CHI], mode == sc.MODE_CONSTANT_ENERGY),
                                     c.x, c.y)
                     c.v[_MS] = 1  # (the new law's first raise is capped: _control)
+                    c.v[_MC] = 1  # (telemetry's FLAG_MODE_SET)
                     c.v[_MN] = _C_MODE_RAMP_MAX
                 c.ctl.set_mode(mode)
                 k += 1

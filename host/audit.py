@@ -99,7 +99,10 @@ def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
     cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none);
     cal_pair[ch]: the two readings that gave its Rp0 (the device's stim SET_MODE takes Rp0 again
     from them, for the new mode, when the mode changes while the channel is armed)."""
-    if not r["flags"] & hp.FLAG_CALIBRATING and c.calibrated and r["mode"] != c.mode and ch in cal_pair:
+    # a mode change while armed: Rp0 again for the new law (FLAG_MODE_SET, firmware 0.4.0 on: also two SET_MODEs
+    # between two reports that end in the mode before, FAST -> X -> FAST, which calibrate it again all the same)
+    changed = r["mode"] != c.mode or r["flags"] & hp.FLAG_MODE_SET
+    if not r["flags"] & hp.FLAG_CALIBRATING and c.calibrated and changed and ch in cal_pair:
         i0, t0, x, y = cal
         c.calibrate(i0, t0, hp.cal_rp0(*cal_pair[ch], r["mode"] == sc.MODE_CONSTANT_ENERGY), x, y)
     c.set_mode(r["mode"])

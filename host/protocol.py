@@ -241,7 +241,7 @@ class CalInfo:
 _WRAP = 1 << 30  # seq and time_us wrap here; 32-bit fields stay below it in magnitude
 _STATUS_BITS = sc.ST_BOUND_MASK | sc.ST_FAULT_MASK
 _SENT_BITS = sc.ST_BOUND_MASK  # (a pulse is never sent with a fault)
-_FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING
+_FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING | hp.FLAG_MODE_SET
 
 
 def _need(ok: bool, what: str, value, accepted: str):

@@ -184,6 +184,7 @@ FLAG_ARMED = const(0x01)
 FLAG_HELD = const(0x02)  # a charge increase waits for a confirming measurement
 FLAG_KEEPALIVE = const(0x04)
 FLAG_CALIBRATING = const(0x08)  # this pulse is a calibration pulse (at I0, T0: Rp0 once two agree, cal_rp0)
+FLAG_MODE_SET = const(0x10)  # SET_MODE changed this armed channel's law (Rp0 again) since its last pulse's report
 
 # ---- the calibration pulses after ARM: Rp0 (the device's stim._control, the host's audit) ----
 CAL_AGREE_LOG2 = const(5)  # two readings in a row within 1/32 of the larger agree

@@ -19,7 +19,7 @@ RANGES = {  # field: (lowest, highest); u16 fields take the low 16 bits, so they
     "mql": (-(2**29) + 1, 2**29 - 1),  # the measured mQ: within sensation_core's _MQ_CAP (a word + 2**29 holds it)
     "status": (0, 2**20), "ni": (0, 2**20), "nt": (0, 2**20), "over": (-3, 2**20), "loop": (-3, 2**20),
     "armed": (0, 1), "held": (0, 1), "keepalive_ms": (0, 5000), "cal": (0, 1), "rate": (10, 100),
-    "ds": (0, 2**20),
+    "ds": (0, 2**20), "mc": (0, 1),
 }
 
 
@@ -53,7 +53,8 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
             ctl.mq_target_fc_per_ohm = v["mqt"]; ctl.mq_last_fc_per_ohm = v["mql"]; ctl.status = v["status"]
             ctl.i_ua = v["ni"]; ctl.t_us = v["nt"]; s.overruns = v["over"]; s.loop_us = v["loop"]
             c.armed = bool(v["armed"]); c.held = bool(v["held"]); s.keepalive_ms = v["keepalive_ms"]
-            c.cal_pulse = bool(v["cal"]); c.delivered_status = v["ds"]
+            c.cal_pulse = bool(v["cal"]); c.delivered_status = v["ds"]; c.mode_set = bool(v["mc"])
+            mc = c.mode_set and c.di != 0  # (reported, then cleared, with a pulse only)
             s.rate_hz = v["rate"]
             for k in range(64):
                 s.tel[c.ch][k] = 0
@@ -62,7 +63,9 @@ def test_viper_telemetry_is_the_struct_layout_byte_for_byte(tmp_path):
             micropython.heap_unlock()
             got.append(bytes(s.tel[c.ch]).hex())
             f = (hp.FLAG_ARMED if c.armed else 0) | (hp.FLAG_HELD if c.held else 0) | \\
-                (hp.FLAG_KEEPALIVE if s.keepalive_ms else 0) | (hp.FLAG_CALIBRATING if c.cal_pulse else 0)
+                (hp.FLAG_KEEPALIVE if s.keepalive_ms else 0) | (hp.FLAG_CALIBRATING if c.cal_pulse else 0) | \\
+                (hp.FLAG_MODE_SET if mc else 0)
+            assert c.mode_set == bool(v["mc"] and not mc)
             ref = bytearray(64)
             struct.pack_into(stim._TEL_FMT, ref, 0, hp.REP_TELEMETRY, c.ch, ctl.mode, c.stop, v["seq"],
                              s.frame_t, c.di & 0xFFFF, c.dt & 0xFFFF, c.vp, c.rp, ctl.me_ua2ms,

@@ -137,7 +137,7 @@ def within_documented_ranges(r) -> bool:
                 and r.t_us <= sc.T_LIMIT_US and r.next_i_ua <= sc.I_LIMIT_UA and r.next_t_us <= sc.T_LIMIT_US
                 and r.vp_mv <= sc.VP_LIMIT_MV and -1 <= r.rp_ohm < 2**30 and r.me_ua2ms < 2**30
                 and abs(r.mq_target_fc_per_ohm) < 2**30 and abs(r.mq_last_fc_per_ohm) < 2**30
-                and r.status < 0x200 and r.flags < 0x10 and (r.rate_hz == 0 or 10 <= r.rate_hz <= 100))
+                and r.status < 0x200 and r.flags < 0x20 and r.sent_status < 0x20 and (r.rate_hz == 0 or 10 <= r.rate_hz <= 100))
     if isinstance(r, Ack):
         return r.result in RESULT_WORDS and r.detail < 64
     if isinstance(r, Info):
@@ -182,10 +182,11 @@ def test_decoder_fuzz_value_in_range_or_protocol_error():
 
 
 @pytest.mark.parametrize("offset, value, field", [
-    (hp.O_CH, 241, "channel"), (hp.O_MODE, 117, "mode"), (hp.O_STOP, 8, "stop"), (hp.O_FLAGS, 0x10, "flags"),
+    (hp.O_CH, 241, "channel"), (hp.O_MODE, 117, "mode"), (hp.O_STOP, 8, "stop"), (hp.O_FLAGS, 0x20, "flags"),
     (hp.O_RATE, 9, "rate_hz"), (hp.O_RATE, 101, "rate_hz"), (hp.O_SEQ + 3, 0x40, "seq"), (hp.O_TIME + 3, 0x40, "time_us"),
     (hp.O_I + 1, 0xFF, "i_ua"), (hp.O_T + 1, 0xFF, "t_us"), (hp.O_STATUS + 1, 0x02, "status"),
     (hp.O_NEXT_T + 1, 0x20, "next_t_us"), (hp.O_MQT + 3, 0x40, "mq_target_fc_per_ohm"),
+    (hp.O_SENT_STATUS, 0x20, "sent_status"), (hp.O_SENT_STATUS + 1, 0x01, "sent_status"),
 ])
 def test_decoder_names_the_field(offset, value, field):
     good = bytearray(64)
