@@ -14,6 +14,18 @@ from .record import RecordingError, meta_int
 
 
 AUDIT_COLUMNS = ("mode", "flags", "stop", "next_i_ua", "next_t_us")
+SENT_STATUS_FIRMWARE = (0, 4, 0)  # the first firmware that reports the status of the pulse sent (telemetry sent_status)
+
+
+def _firmware(meta: dict, path) -> tuple | None:
+    """The header's firmware version as a tuple (None: not in the header)."""
+    v = meta.get("firmware")
+    if v is None:
+        return None
+    try:
+        return tuple(int(x) for x in v.split("."))
+    except ValueError:
+        raise RecordingError(f"{path}: metadata 'firmware' is not a version like 0.4.0: {v!r}") from None
 
 
 @dataclass
@@ -41,6 +53,13 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
     missing = [k for k in AUDIT_COLUMNS if k not in rows[0]]
     if missing:
         raise RecordingError(f"{path}: cannot audit without the column(s) {', '.join(missing)}")
+    # the status of each pulse sent (its bounds, told to the controller before its update): from firmware 0.4.0
+    # on; a device before it sends none (the host records 0s: ignored), its controller kept its own status
+    fw = _firmware(meta, path)
+    sent = "sent_status" in rows[0] and (fw is None or fw >= SENT_STATUS_FIRMWARE)
+    if fw is not None and fw >= SENT_STATUS_FIRMWARE and not sent:
+        raise RecordingError(f"{path}: firmware {meta['firmware']} reports the status of each pulse sent; "
+                             "cannot audit without the column sent_status")
     ctls: dict[int, sc.Controller] = {}
     cals: dict[int, tuple] = {}
     for ch in range(4):
@@ -60,12 +79,12 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
     if not cals:
         raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
     try:
-        return _replay(rows, ctls, cals)
+        return _replay(rows, ctls, cals, sent)
     except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
         raise RecordingError(f"{path}: {e}") from None
 
 
-def _replay(rows, ctls, cals) -> AuditResult:
+def _replay(rows, ctls, cals, sent) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     cal_rp = dict.fromkeys(ctls, 0)  # per channel: the last calibration pulse's Rp not yet confirmed
     cal_pair = {}  # per channel: the two readings that gave Rp0 (a mode change while armed takes it again)
@@ -79,7 +98,7 @@ def _replay(rows, ctls, cals) -> AuditResult:
             skipped += 1
             continue
         try:
-            done = _step(ctls[ch], r, cals[ch], cal_rp, cal_pair, ch)
+            done = _step(ctls[ch], r, cals[ch], cal_rp, cal_pair, ch, sent)
         except ValueError as e:
             raise ValueError(f"data row {n}: {e}") from None
         if not done:
@@ -94,7 +113,7 @@ def _replay(rows, ctls, cals) -> AuditResult:
     return AuditResult(checked, bad, skipped)
 
 
-def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
+def _step(c, r, cal, cal_rp, cal_pair, ch, sent) -> bool:
     """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet).
     cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none);
     cal_pair[ch]: the two readings that gave its Rp0 (the device's stim SET_MODE takes Rp0 again
@@ -134,7 +153,7 @@ def _step(c, r, cal, cal_rp, cal_pair, ch) -> bool:
                 raise ValueError(f"{name}={r[name]} out of range 0..{hi}")
         # the bounds of the pulse sent, as the device tells its controller (a recording before firmware 0.4.0
         # has no sent_status: its firmware left the controller's own status, and so does the replay)
-        st = r.get("sent_status", c.status)
+        st = r["sent_status"] if sent else c.status
         if st & ~sc.ST_BOUND_MASK or st < 0:
             raise ValueError(f"sent_status={st} out of range (bits of 0x{sc.ST_BOUND_MASK:x})")
         c.delivered(r["i_ua"], r["t_us"], st)

@@ -267,6 +267,7 @@ def _check_telemetry(t: Telemetry):
         _need(-_WRAP < v < _WRAP, name, v, "|x| < 2**30")
     _need(not t.status & ~_STATUS_BITS, "status", f"0x{t.status:x}", f"bits of 0x{_STATUS_BITS:x}")
     _need(not t.sent_status & ~_SENT_BITS, "sent_status", f"0x{t.sent_status:x}", f"bits of 0x{_SENT_BITS:x}")
+    _need(t.i_ua or not t.sent_status, "sent_status", f"0x{t.sent_status:x}", "0 in a frame without a pulse")
     _need(t.next_i_ua <= sc.I_LIMIT_UA, "next_i_ua", t.next_i_ua, f"0..{sc.I_LIMIT_UA}")
     _need(t.next_t_us <= sc.T_LIMIT_US, "next_t_us", t.next_t_us, f"0..{sc.T_LIMIT_US}")
     _need(not t.flags & ~_FLAG_BITS, "flags", f"0x{t.flags:x}", f"bits of 0x{_FLAG_BITS:x}")

@@ -137,7 +137,8 @@ def within_documented_ranges(r) -> bool:
                 and r.t_us <= sc.T_LIMIT_US and r.next_i_ua <= sc.I_LIMIT_UA and r.next_t_us <= sc.T_LIMIT_US
                 and r.vp_mv <= sc.VP_LIMIT_MV and -1 <= r.rp_ohm < 2**30 and r.me_ua2ms < 2**30
                 and abs(r.mq_target_fc_per_ohm) < 2**30 and abs(r.mq_last_fc_per_ohm) < 2**30
-                and r.status < 0x200 and r.flags < 0x20 and r.sent_status < 0x20 and (r.rate_hz == 0 or 10 <= r.rate_hz <= 100))
+                and r.status < 0x200 and r.flags < 0x20 and r.sent_status < 0x20 and (r.i_ua or not r.sent_status)
+                and (r.rate_hz == 0 or 10 <= r.rate_hz <= 100))
     if isinstance(r, Ack):
         return r.result in RESULT_WORDS and r.detail < 64
     if isinstance(r, Info):
@@ -187,6 +188,7 @@ def test_decoder_fuzz_value_in_range_or_protocol_error():
     (hp.O_I + 1, 0xFF, "i_ua"), (hp.O_T + 1, 0xFF, "t_us"), (hp.O_STATUS + 1, 0x02, "status"),
     (hp.O_NEXT_T + 1, 0x20, "next_t_us"), (hp.O_MQT + 3, 0x40, "mq_target_fc_per_ohm"),
     (hp.O_SENT_STATUS, 0x20, "sent_status"), (hp.O_SENT_STATUS + 1, 0x01, "sent_status"),
+    (hp.O_SENT_STATUS, sc.ST_T_MAX, "sent_status"),  # (bits that exist, but in a frame without a pulse)
 ])
 def test_decoder_names_the_field(offset, value, field):
     good = bytearray(64)
