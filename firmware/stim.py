@@ -67,8 +67,10 @@ _C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_
 _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
-_C_K_TMIN = const(3)  # its soft t_min (sensation_core._K_TMIN; checked below)
+_C_K_TMIN = const(3)  # its soft t_min, t_max (sensation_core._K_TMIN, _K_TMAX; checked below)
+_C_K_TMAX = const(4)
 _C_ST_I_BOUND = const(0x003)  # sc.ST_I_MIN | sc.ST_I_MAX
+_C_ST_I_MAX = const(0x002)
 _C_ST_T_MIN = const(0x004)
 _C_ST_Q_MAX = const(0x010)
 _C_W_BIAS = const(0x20000000)
@@ -79,7 +81,8 @@ if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_U
         or sc.RP_MAX_OHM != _C_RP_MAX_OHM or hp.STOP_LIMIT != _C_STOP_LIMIT or hp.STOP_ELECTRODE_OFF != _C_STOP_OFF
         or hp.STOP_RP_FAULT != _C_STOP_RP_FAULT or sc.MODE_CONSTANT_ENERGY != _C_MODE_CE
         or sc.MODE_AKHTAR != _C_MODE_AKHTAR or sc.MODE_FAST != _C_MODE_AKHTAR + 1
-        or sc.ST_I_MIN | sc.ST_I_MAX != _C_ST_I_BOUND or sc.ST_T_MIN != _C_ST_T_MIN or sc.ST_Q_MAX != _C_ST_Q_MAX):
+        or sc.ST_I_MIN | sc.ST_I_MAX != _C_ST_I_BOUND or sc.ST_T_MIN != _C_ST_T_MIN or sc.ST_Q_MAX != _C_ST_Q_MAX
+        or sc.ST_I_MAX != _C_ST_I_MAX):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
 # The telemetry layout (bytes 0..O_SENT_STATUS + 1; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
@@ -97,10 +100,10 @@ _c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the 
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
 _c.me_ua2ms, _c.mq_target_fc_per_ohm = 15, 16
 _c.set_mode(sc.MODE_FAST)
-if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_TMIN)] != [
-        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 3]:
+if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_TMIN, _C_K_TMAX)] != [
+        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 3, 4]:
     raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, "
-                      "_C_K_MODE, _C_K_TMIN, _C_W_BIAS")
+                      "_C_K_MODE, _C_K_TMIN, _C_K_TMAX, _C_W_BIAS")
 del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
@@ -743,9 +746,14 @@ class Stimulator:
                     k[_C_K_I] = li
                     k[_C_K_T] = lt
                     k[_C_K_ST] = st
-                    if ni * nt < cap - (cap >> 5):  # held below it by a bound: the law's current instead
-                        ni = li
-                        ns = st
+                    if ni * nt < cap - (cap >> 5):  # held below it by a bound (at i_max Eq. 4's T = Q^2 / mE
+                        if ns & _C_ST_I_MAX and cap // ni >= k[_C_K_TMIN]:  # is Q / i_max short): the law at
+                            nt = cap // ni  # i_max moves T only, so the cap's charge at i_max is its own shape
+                            if nt > k[_C_K_TMAX]:  # (review of session 24: the law's current instead, 3571 uA
+                                nt = k[_C_K_TMAX]  # after a reading x 3, read Rp high off the operating point
+                        else:  # at 4000 uA, and the law then sent 1.062x)
+                            ni = li  # else the law's current
+                            ns = st
                 if ni == li or ni * nt > cap:  # the law's current (I fixed), a shorter pulse; at its
                     nt = cap // ni  # t_min the current that charge allows (a pulse sent had
                     ns = (ns & _C_ST_I_BOUND) | _C_ST_Q_MAX  # I >= i_min and T >= t_min: cap // t_min

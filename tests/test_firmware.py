@@ -709,6 +709,34 @@ def test_one_wild_reading_does_not_end_a_mode_changes_ramp():
     assert max(bad[136:]) <= clean[-1] * 1.02
 
 
+@pytest.mark.parametrize("old, new", [(sc.MODE_FAST, sc.MODE_AKHTAR), (sc.MODE_AKHTAR, sc.MODE_FAST)])
+def test_a_mode_changes_capped_pulse_at_i_max_stays_at_i_max(old, new):
+    """Review of session 24 (MEDIUM, in main before): at i_max (limits 100..4000 uA, I0 3000 x 300 us, after
+    the gel drop) one reading x 3 on the frame of a SET_MODE made the new law ask 3571 uA x 212 us; the ramp's
+    capped pulse on the mE curve (Eq. 4: T = Q^2 / mE, I held at i_max) was far below the cap, so it fell back
+    to the law's current, 3571 uA x 72 us: its genuine reading, off the operating point, read Rp high (Rp falls
+    as the current rises) and the law then sent 1.062x the run without the reading (1.246x from Akhtar to FAST
+    before the sent status). At i_max the law moves T only: the capped pulse is now i_max x cap / i_max."""
+    lim = (100, 4000, 20, 8000, 1500000)
+    reports, _, _ = run_fw(f"""
+        for g in (1.0, 3.0):
+            s, board, usb, clock = make("gel-step", n=1)
+            start(s, i0=3000, t0=300, y=167400, mode={old}, limits={lim})
+            s.run(130)
+            board.glitch[0] = g
+            assert apply(s, hp.cmd_set_mode(bytearray(64), {new})) == 0
+            s.run(60)
+            dump(usb)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    assert len(tel) == 380
+    clean, bad = tel[:190], tel[190:]
+    assert clean[129].i_ua == 4000  # at the current bound when the mode changes
+    qc, qb = [[t.i_ua * t.t_us for t in run[130:]] for run in (clean, bad)]
+    assert {t.i_ua for t in bad[131:]} == {4000}  # the capped pulses stay at i_max
+    assert max(qb) <= max(qc) * 1.02, (max(qb) / max(qc), qb[:8], qc[:8])  # 1.062 before
+
+
 def test_a_fall_just_before_a_mode_change_is_still_held_after_the_ramp():
     """Second review of session 23 (MEDIUM): a reading x 0.5 two frames before a switch from
     pulse-width-linear to constant energy made a fall (997 -> 145 us) and started the fall hold; the
