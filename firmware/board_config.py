@@ -39,7 +39,8 @@ DAC_SPI_HZ = const(10000000)  # the MCP4822 takes up to 20 MHz
 # ---- scales ----
 AMP_UA_AT_FULL = const(10000)  # current at DAC code 4096 (2.048 V x the buffer's gain): LSB = 2.44 uA
 ADC_SAMPLE_US = const(2)  # free-running ADC at its full 500 ksps across the pulse (96 ADC clocks a conversion)
-ADC_WINDOW = const(32)  # samples kept of each capture: its last 64 us, the falling edge among them (a DMA ring)
+ADC_WINDOW = const(128)  # samples kept of each capture: its last 256 us, the falling edge among them (a DMA ring)
+ADC_POST_US = const(100)  # the capture runs this long past the fall: the monitor's decay (tau: stim._measure)
 VMON_UV_PER_COUNT = const(27000)  # electrode uV per 12-bit ADC count (monitor gain and divider)
 PIO_FREQ_HZ = const(1000000)  # 1 us per PIO cycle
 WATCHDOG_MS = const(500)

@@ -36,17 +36,18 @@ _ADC_CLK_HZ = const(48000000)
 # the last conversion before the gate's falling edge starts within the last 2 us of the
 # pulse whatever T and whatever the phase of the conversions against the gate (no CPU
 # timing is involved). The DMA writes into a ring of ADC_WINDOW samples, so each channel
-# keeps only the capture's last 64 us, in time order, ending _CAPTURE_POST_US after
-# the falling edge: the edge and the end of the pulse are always in it.
+# keeps only the capture's last 256 us, in time order, ending _CAPTURE_POST_US after
+# the falling edge: the edge, the end of the pulse and the monitor's decay after it (the
+# skin's tau, stim._measure) are always in it.
 # _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (start()'s
 # timed wait of _LEAD_WAIT_US between the two stores plus the gate program's set-up:
 # 12.9-14.2 us; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
-# edge there (~10 samples after it, ~22 before it in the window); a real chip's flash
+# edge there (~50 samples after it, ~78 before it in the window); a real chip's flash
 # cache misses only lengthen the lead, which moves the edge later in the window: up to
-# ~20 us more still leaves it inside (and a capture that ended early reads Vp low: a
-# lower charge, never a higher one).
+# ~90 us more still leaves it inside (and a capture that ended early reads Vp low: a
+# lower charge, never a higher one; its decay is shorter: tau from fewer samples).
 _CAPTURE_LEAD_US = const(12)
-_CAPTURE_POST_US = const(20)
+_CAPTURE_POST_US = const(100)  # board_config.ADC_POST_US (checked in Board()): the monitor's decay after the fall
 _T_FLOOR_US = const(20)  # hp.T_FLOOR_US (checked below): a literal, so the viper start() folds it
 _SAMPLE_US = const(2)  # board_config.ADC_SAMPLE_US (checked in Board()): start() divides by it as a shift
 # start()'s wait between the ADC's first conversion and the gate's word, in us of the
@@ -165,8 +166,9 @@ class Board:
             sm = rp2.StateMachine(k, pio_gate.gate, freq=pio_gate.FREQ_HZ, set_base=self.gates[k])
             sm.active(1)
             self.sms.append(sm)
-        if cfg.ADC_SAMPLE_US != _SAMPLE_US or n > 4:
-            raise ValueError("board_rp2: ADC_SAMPLE_US must be %d us, N_CHANNELS at most 4" % _SAMPLE_US)
+        if cfg.ADC_SAMPLE_US != _SAMPLE_US or n > 4 or cfg.ADC_POST_US != _CAPTURE_POST_US:
+            raise ValueError("board_rp2: ADC_SAMPLE_US must be %d us, ADC_POST_US %d us, N_CHANNELS at most 4"
+                             % (_SAMPLE_US, _CAPTURE_POST_US))
         p = self.p = array("i", [0] * _P_LEN)  # start(), wait(), set_amplitude() (viper) read these
         self.dac = dac(cfg, n)
         self.codes = self.dac.codes = array("i", self.dac.codes)  # the driver's record of the codes written,

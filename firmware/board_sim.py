@@ -40,12 +40,12 @@ IDEAL_NOISE_COUNTS = 1.5  # the ideal board's ADC noise (as before the realistic
 # ---- the capture, as board_rp2 makes it on the chip (docs/simulation.md, "Voltage monitor and ADC") ----
 # The ADC converts every cfg.ADC_SAMPLE_US from its start, a lead before the gate rises
 # (on the emulated chip 13.1-14.4 us in the frame, varying with the code path; a real
-# chip adds flash-cache misses), for (T + 12 + 20) // dt conversions (board_rp2.
+# chip adds flash-cache misses), for (T + 12 + cfg.ADC_POST_US) // dt conversions (board_rp2.
 # _CAPTURE_LEAD_US, _CAPTURE_POST_US); the board keeps the last cfg.ADC_WINDOW of them, in
 # time order, at the end of adc[ch]. The simulated lead is drawn per pulse from
 # CAPTURE_LEAD_US (a 2 us span: every phase of the conversions against the edge).
 CAPTURE_LEAD_US = (13.0, 15.0)
-CAPTURE_COUNT_US = 12 + 20
+CAPTURE_LEAD_COUNT_US = 12  # (board_rp2._CAPTURE_LEAD_US; the capture's end: + cfg.ADC_POST_US past the fall)
 
 
 class AnalogPath:
@@ -263,6 +263,7 @@ class SimBoard:
         random.seed(seed)
         self.dt_us = cfg.ADC_SAMPLE_US
         self.n_max = cfg.ADC_WINDOW
+        self.post_us = cfg.ADC_POST_US
         self.adc = [array("H", bytes(2 * self.n_max)) for _ in range(n_channels)]
         self.lead_us = None  # the ADC's start before the gate's rise (us); None: drawn per pulse (CAPTURE_LEAD_US)
         self.last_rise = [0] * n_channels  # window index of the last pulse's first sample in the pulse (tests)
@@ -374,7 +375,7 @@ class SimBoard:
             self.clock.advance(t_us)
             return 0
         dt = self.dt_us
-        total = (t_us + CAPTURE_COUNT_US) // dt
+        total = (t_us + CAPTURE_LEAD_COUNT_US + self.post_us) // dt
         w = self.n_max
         n = total if total < w else w
         self.pulses[ch] += 1

@@ -22,6 +22,7 @@ import struct
 from array import array
 
 import sensation_core as sc
+from decay import ltau_q16 as _ltau  # the monitor's decay after the fall: log2 tau (stim._measure)
 from fixmath import word as _word  # a word of Channel.v as an attribute (fixmath.word)
 import hid_protocol as hp
 
@@ -84,15 +85,16 @@ if (sc.VP_LIMIT_MV != _C_VP_LIMIT_MV or sc.RP_OVER != _C_RP_OVER or hp.T_FLOOR_U
         or sc.ST_I_MIN | sc.ST_I_MAX != _C_ST_I_BOUND or sc.ST_T_MIN != _C_ST_T_MIN or sc.ST_Q_MAX != _C_ST_Q_MAX
         or sc.ST_I_MAX != _C_ST_I_MAX):
     raise ImportError("stim: a literal of the viper frame differs from its module's constant")
-# The telemetry layout (bytes 0..O_SENT_STATUS + 1; the rest stays 0) that the viper writer
+# The telemetry layout (bytes 0..O_LTAU + 3; the rest stays 0) that the viper writer
 # _encode_telemetry hard-codes, as a struct format (tests/test_frame_telemetry.py
 # compares the two); its offsets, type and flag values are checked at import.
-_TEL_FMT = "<BBBBiiHHiiiiiHHHHHBBH"
+_TEL_FMT = "<BBBBiiHHiiiiiHHHHHBBHxxi"
 if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 and hp.O_SEQ == 4
         and hp.O_TIME == 8 and hp.O_I == 12 and hp.O_T == 14 and hp.O_VP == 16 and hp.O_RP == 20
         and hp.O_ME == 24 and hp.O_MQT == 28 and hp.O_MQL == 32 and hp.O_STATUS == 36 and hp.O_NEXT_I == 38
         and hp.O_NEXT_T == 40 and hp.O_OVERRUNS == 42 and hp.O_LOOP == 44 and hp.O_FLAGS == 46
-        and hp.O_RATE == 47 and hp.O_SENT_STATUS == 48 and struct.calcsize(_TEL_FMT) == 50 and hp.REP_TELEMETRY == 1
+        and hp.O_RATE == 47 and hp.O_SENT_STATUS == 48 and hp.O_LTAU == 52 and struct.calcsize(_TEL_FMT) == 56
+        and hp.REP_TELEMETRY == 1
         and hp.FLAG_ARMED == 1 and hp.FLAG_HELD == 2 and hp.FLAG_KEEPALIVE == 4 and hp.FLAG_CALIBRATING == 8
         and hp.FLAG_MODE_SET == 16):
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
@@ -128,11 +130,13 @@ def _peak_counts(buf, lo: int, hi: int) -> int:
     (~0.3 V + 1.6 %): it cannot read Rp much high, and a high Rp is what raises
     the charge (mQ ~ Q / (Rp - x*)); the frame's rule that a raise needs two
     measurements in a row (the smaller) keeps one such pulse from raising it.
-    hi - lo == 1: that sample. Viper: machine code on the rp2, nothing allocated;
-    every value is < 4096 + 8 + 64, so 32-bit (ARM) and 64-bit (x64) words agree."""
+    hi - lo == 1: that sample. Returns that value (< 2**16) | e << 16, e the index of
+    the first sample after the largest drop (the fall: the monitor's decay follows it;
+    hi when hi - lo < 2). Viper: machine code on the rp2, nothing allocated; every
+    value is < 4096 + 8 + 64, so 32-bit (ARM) and 64-bit (x64) words agree."""
     p = ptr16(buf)
     if hi - lo < 2:
-        return int(p[lo]) if hi > lo else 0
+        return (int(p[lo]) if hi > lo else 0) | (hi << 16)
     best = 0
     drop = -4096
     e = hi
@@ -154,7 +158,7 @@ def _peak_counts(buf, lo: int, hi: int) -> int:
             x = y
         if x > best:
             best = x
-    return best
+    return best | (e << 16)
 
 
 # A channel's numbers the frame reads and writes every pulse, as words of one int array
@@ -208,7 +212,10 @@ _DS = const(39)  # the pulse delivered this frame (_DI, _DT; telemetry's O_SENT_
 _PS = const(40)  # the held proposal (_PI, _PT)
 _FS = const(41)  # the pulse before the last fall (_FI, _FT)
 _MC = const(42)  # 1: SET_MODE changed the law (calibrate again) since the last report of a pulse (FLAG_MODE_SET:
-_NV = const(43)  # two in one frame, FAST -> X -> FAST, left the mode as `audit` saw it but not the controller)
+# two in one frame, FAST -> X -> FAST, left the mode as `audit` saw it but not the controller)
+_LT = const(43)  # log2 of the monitor's decay time constant after this frame's pulse, Q.16 (decay.ltau_q16; 0: none)
+_DTU = const(44)  # us between two ADC samples (the board's dt_us, fixed at set-up)
+_NV = const(45)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -285,6 +292,7 @@ class Channel:
     sent_status = _word(_SS)  # the status bits of the pulse to send (_I, _T) ...
     delivered_status = _word(_DS)  # ... and of the pulse delivered this frame (_DI, _DT)
     mode_set = _flag(_MC)
+    ltau = _word(_LT)
 
     def __init__(self, ch, lim):
         self.v = array("i", [0] * _NV)
@@ -357,6 +365,7 @@ class Stimulator:
             c.adc = board.adc[c.ch]  # the board's capture buffer of this channel (fixed)
             c.v[_W] = len(c.adc)
             c.v[_UV] = self.uv_per_count
+            c.v[_DTU] = board.dt_us
             c.v[_HI] = self.hard_i
             c.v[_HT] = self.hard_t
             c.v[_HQ] = self.hard_q
@@ -630,11 +639,14 @@ class Stimulator:
         v = ptr32(c.v)
         n = v[_NS]
         x = 0
+        e = 0
+        w = v[_W]
         if n > 0:
-            w = v[_W]
             if n > w:  # a board that reports more samples than its window: read the window only
                 n = w
             x = int(_peak_counts(c.adc, w - n, w))
+            e = x >> 16  # the first sample after the fall
+            x &= 0xFFFF
         uv = v[_UV]
         vp = x * uv // 1000
         v[_VPR] = vp
@@ -650,7 +662,12 @@ class Stimulator:
             elif x > 4095:
                 x = 4095
             vp = x * uv // 1000
+        else:
+            o = 0
         v[_VP] = vp
+        # tau = R_skin Cp: the decay after the fall (its straddling sample skipped), the monitor's
+        # offset out (gain cancels in the ratio); telemetry only so far (docs/performance.md)
+        v[_LT] = int(_ltau(c.adc, e + 1, w - e - 1, o, v[_DTU])) if n > 0 and e + 1 < w else 0
         di = v[_DI]
         if di <= 0:
             v[_RP] = 0
@@ -849,7 +866,7 @@ class Stimulator:
     @micropython.viper
     def _encode_telemetry(self, c):
         """Channel c's telemetry into its own report buffer (sent after the pulses):
-        bytes 0..49 of hid_protocol's layout, little-endian as its '<' formats (the
+        bytes 0..55 of hid_protocol's layout, little-endian as its '<' formats (the
         offsets are checked at import); the rest stays 0. Viper, because speed forces
         it: the fields go straight into the buffer, ~0.1 ms a channel less on the chip
         than one struct.pack_into. Every i32 field is within +-2**30; a u16 field
@@ -891,6 +908,7 @@ class Stimulator:
         v = 0 if v < 0 else (v if v < 0xFFFF else 0xFFFF)
         p32[11] = v | (f << 16) | (int(self.rate_hz) << 24)  # O_LOOP 44, O_FLAGS 46, O_RATE 47
         p32[12] = cv[_DS] & 0xFFFF  # O_SENT_STATUS 48 (bytes 50, 51 stay 0)
+        p32[13] = cv[_LT]  # O_LTAU 52
         self.seq = (seq + 1) & 0x3FFFFFFF
 
     def _ack(self, r, result, detail):

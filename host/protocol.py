@@ -54,8 +54,8 @@ VMON_STATE_WORDS = {
     hp.VMON_STORED: "correction stored since boot",
 }
 
-_TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBBH")  # bytes 0..49
-assert _TELEMETRY.size == 50
+_TELEMETRY = struct.Struct("<BBBBIIHHIiIiiHHHHHBBHxxI")  # bytes 0..55
+assert _TELEMETRY.size == 56
 
 
 class ProtocolError(ValueError):
@@ -86,6 +86,8 @@ class Telemetry:
     # the status bits (bounds) of the pulse delivered in this frame, as the controller is told before its
     # update (firmware 0.4.0; 0 before it and when no pulse): `audit` replays it
     sent_status: int = 0
+    # log2 of the monitor's decay time constant (tau = R_skin Cp, us) after the pulse, Q.16 (firmware 0.4.0; 0: none)
+    ltau_q16: int = 0
 
     @property
     def armed(self) -> bool:
@@ -241,6 +243,7 @@ class CalInfo:
 _WRAP = 1 << 30  # seq and time_us wrap here; 32-bit fields stay below it in magnitude
 _STATUS_BITS = sc.ST_BOUND_MASK | sc.ST_FAULT_MASK
 _SENT_BITS = sc.ST_BOUND_MASK  # (a pulse is never sent with a fault)
+_LTAU_END = 20 << 16  # decay.LTAU_END: log2 tau in Q.16 below 20 (the firmware reads 0 beyond)
 _FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING | hp.FLAG_MODE_SET
 
 
@@ -268,6 +271,8 @@ def _check_telemetry(t: Telemetry):
     _need(not t.status & ~_STATUS_BITS, "status", f"0x{t.status:x}", f"bits of 0x{_STATUS_BITS:x}")
     _need(not t.sent_status & ~_SENT_BITS, "sent_status", f"0x{t.sent_status:x}", f"bits of 0x{_SENT_BITS:x}")
     _need(t.i_ua or not t.sent_status, "sent_status", f"0x{t.sent_status:x}", "0 in a frame without a pulse")
+    _need(t.ltau_q16 < _LTAU_END, "ltau_q16", t.ltau_q16, f"0..{_LTAU_END - 1} (tau below 2**20 us)")
+    _need(t.i_ua or not t.ltau_q16, "ltau_q16", t.ltau_q16, "0 in a frame without a pulse")
     _need(t.next_i_ua <= sc.I_LIMIT_UA, "next_i_ua", t.next_i_ua, f"0..{sc.I_LIMIT_UA}")
     _need(t.next_t_us <= sc.T_LIMIT_US, "next_t_us", t.next_t_us, f"0..{sc.T_LIMIT_US}")
     _need(not t.flags & ~_FLAG_BITS, "flags", f"0x{t.flags:x}", f"bits of 0x{_FLAG_BITS:x}")
@@ -331,7 +336,7 @@ def decode(report: bytes):
             seq=f[4], time_us=f[5], channel=f[1], mode=f[2], stop=f[3], i_ua=f[6], t_us=f[7], vp_mv=f[8],
             rp_ohm=f[9], me_ua2ms=f[10], mq_target_fc_per_ohm=f[11], mq_last_fc_per_ohm=f[12], status=f[13],
             next_i_ua=f[14], next_t_us=f[15], overruns=f[16], loop_us=f[17], flags=f[18], rate_hz=f[19],
-            sent_status=f[20],
+            sent_status=f[20], ltau_q16=f[21],
         )
         _check_telemetry(t)
         return t

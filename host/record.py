@@ -15,7 +15,7 @@ FORMAT = "steadytouch recording 1"
 COLUMNS = [
     "seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status", "stop", "mode", "me_ua2ms",
     "mq_target_fc_per_ohm", "mq_last_fc_per_ohm", "next_i_ua", "next_t_us", "flags", "overruns", "loop_us",
-    "sent_status",  # (firmware 0.4.0 on; `audit` replays it where present)
+    "sent_status", "ltau_q16",  # (firmware 0.4.0 on; `audit` replays sent_status where present)
 ]
 REQUIRED = ["seq", "time_us", "channel", "i_ua", "t_us", "vp_mv", "rp_ohm", "status"]
 MAX_CHANNELS = 4  # the protocol's channels 0..3

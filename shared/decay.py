@@ -37,6 +37,7 @@ _Q16_16 = const(0x100000)  # 16 in Q.16: log2q(d) reads d (Q.16) as an integer
 N_MIN = const(4)  # samples needed (two windows of 2)
 N_MAX = const(1024)  # a window sum stays below 2**30: 512 samples x 4095 x 16 < 2**25
 DT_MAX_US = const(1000)
+LTAU_END = const(0x140000)  # 20 in Q.16: a tau of 2**20 us (1 s) or more is no decay the capture can read
 
 
 @micropython.viper
@@ -46,7 +47,8 @@ def ltau_q16(buf, lo: int, n: int, off_x16: int, dt_us: int) -> int:
     with the monitor's offset off_x16 (counts x 16) taken out. 0 when tau cannot be read:
     n or dt_us out of range (N_MIN..N_MAX, 1..DT_MAX_US), the second window's sum not
     above 0, or no decay (Sa <= Sb). A tau of 1 us or less also reads 0 (log2 1 = 0):
-    the capture cannot resolve it (2 us a sample)."""
+    the capture cannot resolve it (2 us a sample); so does one of LTAU_END or more (a decay
+    too flat to read: the windows' sums differ by their rounding)."""
     if n < N_MIN or n > N_MAX or dt_us < 1 or dt_us > DT_MAX_US:
         return 0
     b = ptr16(buf)
@@ -64,4 +66,4 @@ def ltau_q16(buf, lo: int, n: int, off_x16: int, dt_us: int) -> int:
     if d <= 0:  # Sa, Sb too close for log2q to part them: no decay to read
         return 0
     lt = int(log2q(m * dt_us)) + _Q16_16 - int(log2q(d)) + _L_LN2_NEG
-    return lt if lt > 0 else 0
+    return lt if 0 < lt < LTAU_END else 0

@@ -227,6 +227,7 @@ O_LOOP = const(44)  # u16 us, saturating
 O_FLAGS = const(46)
 O_RATE = const(47)
 O_SENT_STATUS = const(48)  # u16 the status bits (bounds) of the pulse delivered in this frame (0: none)
+O_LTAU = const(52)  # u32 log2 of the monitor's decay time constant (us) after that pulse, Q.16 (0: none)
 # ack / info
 O_CMD = const(1)
 O_RESULT = const(2)

@@ -127,10 +127,10 @@ def test_a_bad_correction_file_is_refused_naming_the_line(text, words):
 
 @pytest.mark.parametrize("t_us", [20, 21, 33, 99, 100, 101, 333, 1000, 2001, 8000])
 def test_the_capture_is_the_chips_window_with_the_falling_edge_in_it(t_us):
-    """As board_rp2 on the chip (tests/chip/test_chip_adc.py): the last min((T + 32) // 2, 32)
-    conversions 2 us apart, the falling edge among them with the last conversion before it
-    in the pulse's last 2 us; on a resistor, the samples in the pulse read the load and
-    the ones after the fall read nothing (no current)."""
+    """As board_rp2 on the chip (tests/chip/test_chip_adc.py): the last min((T + 12 + ADC_POST_US) // 2,
+    ADC_WINDOW) conversions 2 us apart, the falling edge among them with the last conversion before it
+    in the pulse's last 2 us and ADC_POST_US of the decay after it; on a resistor, the samples in the
+    pulse read the load and the ones after the fall read nothing (no current)."""
     b = board(ideal=True, load_ohm=10000, noise=0.0)
     for lead in (13.0, 13.7, 14.99, None):
         b.lead_us = lead
@@ -138,10 +138,11 @@ def test_the_capture_is_the_chips_window_with_the_falling_edge_in_it(t_us):
         b.clock.advance(20000)
         n = b.fire(0, t_us)
         w = cfg.ADC_WINDOW
-        assert n == min((t_us + 32) // cfg.ADC_SAMPLE_US, w)
+        span = t_us + 12 + cfg.ADC_POST_US
+        assert n == min(span // cfg.ADC_SAMPLE_US, w)
         rise, edge = b.last_rise[0], b.last_edge[0]
-        assert w - n <= rise < edge < w and w - edge >= 5  # the edge in the window, samples after it
-        first_t = (t_us + 32) // cfg.ADC_SAMPLE_US * cfg.ADC_SAMPLE_US - n * cfg.ADC_SAMPLE_US  # from the ADC start
+        assert w - n <= rise < edge < w and w - edge >= (cfg.ADC_POST_US - 4) // cfg.ADC_SAMPLE_US  # the decay after it
+        first_t = span // cfg.ADC_SAMPLE_US * cfg.ADC_SAMPLE_US - n * cfg.ADC_SAMPLE_US  # from the ADC start
         if lead is not None:
             t_last = first_t + (edge - 1 - (w - n)) * cfg.ADC_SAMPLE_US - lead  # from the rise
             assert t_us - cfg.ADC_SAMPLE_US <= t_last < t_us

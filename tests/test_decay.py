@@ -65,6 +65,9 @@ def test_what_cannot_be_read_is_zero():
     rising = array("H", range(100, 164))
     assert decay.ltau_q16(rising, 0, 64, 0, DT) == 0
     assert decay.ltau_q16(buf, 0, 64, 4095 * 16, DT) == 0  # the offset above every sample: Sb <= 0
+    flat1 = array("H", [1000] * 63 + [999])  # the windows differ by one count: tau 64 us / ln(1 + 1/31999),
+    assert two_windows(flat1, 64, 0, DT) > 2.04e6  # 2 s: beyond LTAU_END (1 s), no decay to read
+    assert decay.ltau_q16(flat1, 0, 64, 0, DT) == 0 and decay.ltau_q16(samples(2.0e5, 3000, 100, 64), 0, 64, 1600, DT) > 0
     # lo: a window further into the buffer reads the same tau (an exponential has no origin)
     two = array("H", list(samples(100.0, 2000, 100, 16)) + list(buf))
     assert abs(decay.ltau_q16(two, 16, 64, 1600, DT) - decay.ltau_q16(buf, 0, 64, 1600, DT)) == 0

@@ -12,7 +12,9 @@
 //     real bus time in emulated us);
 //   - feeds the ADC per sample with the electrode's monitor voltage while the
 //     gate is high: V = I (Rs + Rp (1 - e^(-t/tau))), firmware/sim_electrode.py's
-//     model, I from the DAC code the board set, clamped at compliance;
+//     model, I from the DAC code the board set, clamped at compliance; after the
+//     fall the skin's capacitance discharging through Rp: V(fall) e^(-t/tau) (no
+//     current: the Rs drop is gone), what the firmware reads tau from;
 //   - records watchdog feeds and turns a watchdog reset into a reply;
 //   - is the USB host: CDC for the raw REPL, and the board's HID interface
 //     (enumerated again when the board re-connects with it), whose 64-byte IN
@@ -142,6 +144,7 @@ class Chip {
     this.wiring = null;
     this.loads = [];
     this.rise = new Map(); // gate pin -> [rise ns, i_ua]
+    this.fall = new Map(); // gate pin -> [rise ns, fall ns, i_ua, load] of its last pulse (the decay after it)
     this.world = null; // a scenario's electrodes (setScenario), else the fixed loads
     this.dacCodes = []; // the code each DAC output holds (channel k: chip k >> 1, output k & 1)
     this.dacWrites = []; // [ns, channel, word] of every word latched
@@ -282,6 +285,7 @@ class Chip {
     const t = this.nowNs ?? this.clock.nanos;
     this.edges.push([pin, high ? 1 : 0, t]);
     if (high) {
+      this.fall.delete(k);
       this.rise.set(k, [t, this.amplitudeUa(k)]);
       if (this.world) this.electrodePulse(k, t, this.rise.get(k)[1]);
       const l = this.loads[k];
@@ -295,6 +299,9 @@ class Chip {
     else if (this.rise.has(k)) {
       const [t0, i] = this.rise.get(k);
       this.rise.delete(k);
+      let load = this.loads[k];
+      if (load && load.cycle) load = load.cycle[load.idx ?? 0];
+      this.fall.set(k, [t0, t, i, load]);
       this.pulses.push({ ch: k, rise_ns: t0, fall_ns: t, i_ua: i });
     }
   }
@@ -303,17 +310,29 @@ class Chip {
     const w = this.wiring;
     if (!w) return 0;
     const k = w.adc_inputs.indexOf(adcInput);
-    if (k < 0 || !this.rise.has(k)) return 0;
-    let load = this.loads[k];
-    if (load && load.cycle) load = load.cycle[load.idx ?? 0];
-    const [t0, i] = this.rise.get(k);
+    if (k < 0) return 0;
     let uv;
-    if (!load || load.open) uv = w.compliance_mv * 1000; // no electrode: the stimulator sits at compliance
+    if (!this.rise.has(k)) { // after a pulse: Cp's charge at the fall decays through Rp (none before any pulse)
+      const f = this.fall.get(k);
+      if (!f) return 0;
+      const [t0, tf, i, load] = f;
+      uv = 0;
+      if (load && !load.open && load.tau_us > 0) {
+        const v = i * load.rp_ohm * (1 - Math.exp(-(tf - t0) / 1000 / load.tau_us));
+        uv = Math.min(v, w.compliance_mv * 1000) * Math.exp(-(t - tf) / 1000 / load.tau_us);
+      }
+    }
     else {
-      const us = (t - t0) / 1000;
-      const charge = load.tau_us > 0 ? 1 - Math.exp(-us / load.tau_us) : 1;
-      uv = i * (load.rs_ohm + load.rp_ohm * charge);
-      uv = Math.min(uv, w.compliance_mv * 1000);
+      let load = this.loads[k];
+      if (load && load.cycle) load = load.cycle[load.idx ?? 0];
+      const [t0, i] = this.rise.get(k);
+      if (!load || load.open) uv = w.compliance_mv * 1000; // no electrode: the stimulator sits at compliance
+      else {
+        const us = (t - t0) / 1000;
+        const charge = load.tau_us > 0 ? 1 - Math.exp(-us / load.tau_us) : 1;
+        uv = i * (load.rs_ohm + load.rp_ohm * charge);
+        uv = Math.min(uv, w.compliance_mv * 1000);
+      }
     }
     const a = this.world && this.world.analog; // the realistic board (board_sim.AnalogPath's errors)
     let counts = uv / w.uv_per_count;

@@ -17,7 +17,7 @@ MARKER_TYPE = "Markers"
 
 # units of the columns whose name does not end in one (the project names units in names)
 _NAMED_UNITS = {"seq": "count", "channel": "index", "status": "bits", "stop": "code", "mode": "code",
-                "flags": "bits", "overruns": "count", "sent_status": "bits"}
+                "flags": "bits", "overruns": "count", "sent_status": "bits", "ltau_q16": "log2(us)*65536"}
 # longest suffix first
 _SUFFIX_UNITS = (("_fc_per_ohm", "fC/ohm"), ("_ua2ms", "uA^2*ms"), ("_ohm", "ohm"), ("_ua", "uA"), ("_us", "us"),
                  ("_mv", "mV"), ("_pc", "pC"), ("_ms", "ms"), ("_hz", "Hz"))

@@ -17,7 +17,7 @@ import pytest
 
 import hid_protocol as hp
 import sensation_core as sc
-from test_frame_peak import reference
+from test_frame_peak import packed, reference
 
 US = 1000  # ns
 RUN = """
@@ -91,7 +91,7 @@ def test_the_capture_window_holds_the_falling_edge_and_a_sample_from_the_last_2_
     for (ch, di, dt, vp, rp, stop, n, buf), p in zip(rows, pulses):
         assert (ch, dt, stop) == (p["ch"], t0, 0) and p["fall_ns"] - p["rise_ns"] == t0 * US
         conv = capture(cfg, samples, p, cfg.ADC_INPUTS[ch])
-        total = (t0 + 12 + 20) // cfg.ADC_SAMPLE_US  # board_rp2: _CAPTURE_LEAD_US + _CAPTURE_POST_US
+        total = (t0 + 12 + cfg.ADC_POST_US) // cfg.ADC_SAMPLE_US  # board_rp2: _CAPTURE_LEAD_US + _CAPTURE_POST_US
         assert n == min(total, cfg.ADC_WINDOW) and len(buf) == cfg.ADC_WINDOW
         got = conv[total - n:total]
         assert [v for _t, v in got] == buf[cfg.ADC_WINDOW - n:], "the window is not the capture's last conversions"
@@ -148,7 +148,7 @@ def test_rp_is_the_model_at_the_end_of_the_pulse_within_the_adc_resolution(on_bo
                 assert abs(rp - end) <= 2 * res + 1
             # the sample read: the latest one inside the pulse holding the value read
             conv = capture(cfg, samples, p, cfg.ADC_INPUTS[ch])
-            total = (t0 + 12 + 20) // cfg.ADC_SAMPLE_US
+            total = (t0 + 12 + cfg.ADC_POST_US) // cfg.ADC_SAMPLE_US
             got = conv[total - n:total]
             v = peak_counts(buf[cfg.ADC_WINDOW - n:])
             t_read = max((t - p["rise_ns"]) / US for t, x in got if x == v and t < p["fall_ns"])
@@ -203,4 +203,4 @@ def read_all(bufs, cases, got):
         micropython.heap_unlock()
 read_all(bufs, cases, got)
 print(got)""")
-    assert out == [reference(v, lo, 32) for v, lo in cases]
+    assert out == [packed(v, lo, 32) for v, lo in cases]

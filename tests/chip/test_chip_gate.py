@@ -12,8 +12,8 @@ US = 1000  # ns
 
 def window_n(cfg, t_us):
     """The samples start() says the capture keeps: its conversions, from 12 us before the rise
-    to 20 us past the fall (board_rp2._CAPTURE_LEAD_US, _CAPTURE_POST_US), at most the window."""
-    return min((t_us + 12 + 20) // cfg.ADC_SAMPLE_US, cfg.ADC_WINDOW)
+    to ADC_POST_US past the fall (board_rp2._CAPTURE_LEAD_US, _CAPTURE_POST_US), at most the window."""
+    return min((t_us + 12 + cfg.ADC_POST_US) // cfg.ADC_SAMPLE_US, cfg.ADC_WINDOW)
 
 
 def widths_us(pulses, ch=0):
