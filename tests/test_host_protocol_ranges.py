@@ -138,6 +138,7 @@ def within_documented_ranges(r) -> bool:
                 and r.vp_mv <= sc.VP_LIMIT_MV and -1 <= r.rp_ohm < 2**30 and r.me_ua2ms < 2**30
                 and abs(r.mq_target_fc_per_ohm) < 2**30 and abs(r.mq_last_fc_per_ohm) < 2**30
                 and r.status < 0x200 and r.flags < 0x20 and r.sent_status < 0x20 and (r.i_ua or not r.sent_status)
+                and r.ltau_q16 < 20 << 16 and (r.i_ua or not r.ltau_q16)
                 and (r.rate_hz == 0 or 10 <= r.rate_hz <= 100))
     if isinstance(r, Ack):
         return r.result in RESULT_WORDS and r.detail < 64
@@ -189,6 +190,7 @@ def test_decoder_fuzz_value_in_range_or_protocol_error():
     (hp.O_NEXT_T + 1, 0x20, "next_t_us"), (hp.O_MQT + 3, 0x40, "mq_target_fc_per_ohm"),
     (hp.O_SENT_STATUS, 0x20, "sent_status"), (hp.O_SENT_STATUS + 1, 0x01, "sent_status"),
     (hp.O_SENT_STATUS, sc.ST_T_MAX, "sent_status"),  # (bits that exist, but in a frame without a pulse)
+    (hp.O_LTAU + 2, 0x14, "ltau_q16"), (hp.O_LTAU, 0x01, "ltau_q16"),  # tau of 2**20 us; any tau without a pulse
 ])
 def test_decoder_names_the_field(offset, value, field):
     good = bytearray(64)
