@@ -188,19 +188,20 @@ SURGES = False  # --surges: one line per surging step (study)
 PEAK = "firmware"  # stim._peak_counts; "end": the last sample before the fall, no guard; "pairmin": its strict half
 
 
-def peak_counts(buf, n, edge=None):
-    """stim._peak_counts over the last n samples of the window buf (1 sample: that one): the
+def peak_counts(buf, n, edge=None, px=0):
+    """stim._peak_counts as stim._measure reads the window buf: its samples but the last px (the decay past
+    stim._C_PEAK_POST_US), at most stim._C_PEAK_SAMPLES of them, of the last n (1 sample: that one): the
     larger of the largest min of two neighbouring samples and the last sample before the
     largest drop capped at its predecessor + 8 + 1/64. PEAK == "end": the sample just before
     the fall (`edge`: the window index of the first sample after it), a bound without a guard;
     "pairmin": the pair-min part alone (the strict guard, 2-4 us early)."""
-    w = len(buf)
-    lo = w - n
-    if n <= 0:
+    w = len(buf) - px
+    lo = max(len(buf) - n, w - 32)
+    if w - lo <= 0:
         return 0
     if PEAK == "end" and edge is not None and edge - 1 >= lo:
         return buf[edge - 1]
-    if n == 1:
+    if w - lo == 1:
         return buf[w - 1]
     best = max(min(buf[k - 1], buf[k]) for k in range(lo + 1, w))
     if PEAK == "pairmin":
@@ -233,7 +234,8 @@ class Meter:
         di = b.set_amplitude(0, i_ua)
         b.clock.advance(20000 - t_us)
         n = b.fire(0, t_us)
-        vp = peak_counts(b.adc[0], n, b.last_edge[0]) * cfg.VMON_UV_PER_COUNT // 1000
+        px = max(0, b.post_us - 20) // b.dt_us  # (stim._measure's _PX: the read ends 20 us past the fall)
+        vp = peak_counts(b.adc[0], n, b.last_edge[0], px) * cfg.VMON_UV_PER_COUNT // 1000
         rp = sc.RP_OVER if vp >= self.vp_off else sc.rp_from_vp(vp, di)
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 

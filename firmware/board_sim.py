@@ -46,6 +46,12 @@ IDEAL_NOISE_COUNTS = 1.5  # the ideal board's ADC noise (as before the realistic
 # CAPTURE_LEAD_US (a 2 us span: every phase of the conversions against the edge).
 CAPTURE_LEAD_US = (13.0, 15.0)
 CAPTURE_LEAD_COUNT_US = 12  # (board_rp2._CAPTURE_LEAD_US; the capture's end: + cfg.ADC_POST_US past the fall)
+# The capture before session 24 ended 20 us past the fall and kept 32 samples: those samples draw their
+# noise from the board's generator in the same order as then, the others (the longer capture's) from a
+# second one, so every reading of a pulse is the same as before the capture grew (the studies' figures
+# stay comparable; Vp reads the samples before the fall)
+_OLD_POST_US = 20
+_OLD_WINDOW = 32
 
 
 class AnalogPath:
@@ -261,6 +267,7 @@ class SimBoard:
         self.noise = self.analog.noise
         self.rng = random
         random.seed(seed)
+        self.r2 = (seed * 2654435761 + 12345) & 0xFFFFFFFF or 1  # the second generator's state (xorshift32)
         self.dt_us = cfg.ADC_SAMPLE_US
         self.n_max = cfg.ADC_WINDOW
         self.post_us = cfg.ADC_POST_US
@@ -361,6 +368,19 @@ class SimBoard:
         self.watchdog_feeds += 1
         self._advance_scenario()
 
+    def _noise2(self):
+        """The sum of three uniforms less 1.5 (as the board's generator's noise) from the second generator
+        (xorshift32): the samples the capture before session 24 did not hold."""
+        x = self.r2
+        z = 0.0
+        for _ in range(3):
+            x ^= (x << 13) & 0xFFFFFFFF
+            x ^= x >> 17
+            x ^= (x << 5) & 0xFFFFFFFF
+            z += x / 4294967296.0
+        self.r2 = x
+        return z - 1.5
+
     def fire(self, ch, t_us):
         """Gate a pulse of t_us at the set amplitude and capture the monitor as the
         chip does: conversions every dt_us from lead_us before the rise to past the
@@ -407,6 +427,9 @@ class SimBoard:
         t0 = (total - n) * dt - lead  # the first kept conversion, from the rise (us)
         edge = w
         rise = w
+        old_end = (t_us + CAPTURE_LEAD_COUNT_US + _OLD_POST_US) // dt  # the old capture's samples (_OLD_POST_US):
+        old_lo = old_end - (old_end if old_end < _OLD_WINDOW else _OLD_WINDOW) - (total - n)  # window indices
+        old_end -= total - n
         for j in range(n):
             t = t0 + j * dt
             if t < 0.0:
@@ -427,10 +450,11 @@ class SimBoard:
                 mv = v_cap_mv * exp ** (-(t - t_us) / tau) if on else 0.0
                 if mv > full:
                     mv = full
+            z = (rnd() + rnd() + rnd() - 1.5) if old_lo <= j < old_end else self._noise2()
             if self.ideal:
-                counts = mv * 1000.0 / uv * g + (rnd() + rnd() + rnd() - 1.5) * sig2
+                counts = mv * 1000.0 / uv * g + z * sig2
             else:
-                counts = mv * gain + off + (rnd() + rnd() + rnd() - 1.5) * sig2
+                counts = mv * gain + off + z * sig2
             c = int(counts + 0.5)
             c = 0 if c < 0 else (ADC_MAX if c > ADC_MAX else c)
             if dnl is not None:

@@ -215,7 +215,13 @@ _MC = const(42)  # 1: SET_MODE changed the law (calibrate again) since the last 
 # two in one frame, FAST -> X -> FAST, left the mode as `audit` saw it but not the controller)
 _LT = const(43)  # log2 of the monitor's decay time constant after this frame's pulse, Q.16 (decay.ltau_q16; 0: none)
 _DTU = const(44)  # us between two ADC samples (the board's dt_us, fixed at set-up)
-_NV = const(45)
+_PX = const(45)  # samples at the window's end past what Vp reads (the capture's decay beyond _C_PEAK_POST_US)
+_NV = const(46)
+# Vp reads the capture's samples up to _C_PEAK_POST_US past the fall, at most _C_PEAK_SAMPLES of them (the
+# window before session 24): the longer capture after it is the decay's (tau). A longer read would take the
+# largest pair-min over more of the plateau, and its noise would lift Vp (and Rp, which raises the charge)
+_C_PEAK_POST_US = const(20)
+_C_PEAK_SAMPLES = const(32)
 # after a fall of the charge by more than 1/2**this, no raise goes past the pulse sent before the
 # fall for _C_FALL_HOLD pulses or until that pulse is sent again (the readings on it are then the
 # two-in-a-row rule's to judge): one wild reading that made the fall cannot make the recovery
@@ -366,6 +372,7 @@ class Stimulator:
             c.v[_W] = len(c.adc)
             c.v[_UV] = self.uv_per_count
             c.v[_DTU] = board.dt_us
+            c.v[_PX] = (cfg.ADC_POST_US - _C_PEAK_POST_US) // board.dt_us if cfg.ADC_POST_US > _C_PEAK_POST_US else 0
             c.v[_HI] = self.hard_i
             c.v[_HT] = self.hard_t
             c.v[_HQ] = self.hard_q
@@ -644,7 +651,11 @@ class Stimulator:
         if n > 0:
             if n > w:  # a board that reports more samples than its window: read the window only
                 n = w
-            x = int(_peak_counts(c.adc, w - n, w))
+            hi = w - v[_PX]  # (_C_PEAK_POST_US past the fall)
+            lo = hi - _C_PEAK_SAMPLES
+            if lo < w - n:
+                lo = w - n
+            x = int(_peak_counts(c.adc, lo, hi))
             e = x >> 16  # the first sample after the fall
             x &= 0xFFFF
         uv = v[_UV]

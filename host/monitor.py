@@ -35,7 +35,7 @@ class MonitorState:
 
     def render(self, url: str = "", lost: int = 0) -> str:
         head = f"steadytouch monitor  {url}   lost reports: {lost}"
-        cols = (f"{'ch':>2} {'state':<24} {'I uA':>6} {'T us':>5} {'Vp mV':>7} {'Rp ohm':>7} {'mE uA2ms':>9} "
+        cols = (f"{'ch':>2} {'state':<24} {'I uA':>6} {'T us':>5} {'Vp mV':>7} {'Rp ohm':>7} {'tau us':>6} {'mE uA2ms':>9} "
                 f"{'mQ target':>10} {'mQ meas':>10} {'err uC/kohm':>12} {'rate Hz':>7} {'bounds':<12}")
         lines = [head, cols, "-" * len(cols)]
         for ch in sorted(self.last):
@@ -45,8 +45,9 @@ class MonitorState:
                 state += " (held)"
             err = (t.mq_last_fc_per_ohm - t.mq_target_fc_per_ohm) / 1e6 if t.i_ua else 0.0
             bounds = ",".join(w for b, w in _BOUND_WORDS if t.status & b)
+            tau = f"{2 ** (t.ltau_q16 / 65536):.0f}" if t.ltau_q16 else "-"  # the skin's R Cp after the pulse
             lines.append(
-                f"{ch:>2} {state:<24.24} {t.i_ua:>6} {t.t_us:>5} {t.vp_mv:>7} {t.rp_ohm:>7} {t.me_ua2ms:>9} "
+                f"{ch:>2} {state:<24.24} {t.i_ua:>6} {t.t_us:>5} {t.vp_mv:>7} {t.rp_ohm:>7} {tau:>6} {t.me_ua2ms:>9} "
                 f"{t.mq_target_fc_per_ohm / 1e6:>10.5f} {t.mq_last_fc_per_ohm / 1e6:>10.5f} {err:>12.2e} "
                 f"{self.rate_hz(ch):>7.1f} {bounds:<12}")
         if self.last:

@@ -64,9 +64,11 @@ def dac_ua(cfg, i_ua):
     return (i_ua * 4096 // cfg.AMP_UA_AT_FULL) * cfg.AMP_UA_AT_FULL / 4096
 
 
-def peak_counts(v):
-    """stim._peak_counts on a whole window (its reference, checked against the viper code there)."""
-    return reference(v, 0, len(v))
+def peak_counts(v, cfg):
+    """Vp as stim._measure reads the capture's last samples v: _peak_counts (its reference, checked against the
+    viper code there) on those up to 20 us past the fall (stim._C_PEAK_POST_US), at most 32 of them."""
+    hi = len(v) - (cfg.ADC_POST_US - 20) // cfg.ADC_SAMPLE_US
+    return reference(v, max(0, hi - 32), hi)
 
 
 def capture(cfg, samples, p, adc_input):
@@ -101,7 +103,7 @@ def test_the_capture_window_holds_the_falling_edge_and_a_sample_from_the_last_2_
         after = [t for t, _v in got if t >= p["fall_ns"]]
         assert len(after) >= 5 and len(before) >= 2, (len(before), len(after))
         assert p["fall_ns"] - before[-1] <= cfg.ADC_SAMPLE_US * US  # the pulse's last 2 us
-        assert vp == peak_counts(buf[cfg.ADC_WINDOW - n:]) * cfg.VMON_UV_PER_COUNT // 1000
+        assert vp == peak_counts(buf[cfg.ADC_WINDOW - n:], cfg) * cfg.VMON_UV_PER_COUNT // 1000
     print(f"T={t0} us: lead {min(leads):.3f}-{max(leads):.3f} us")
     assert all(12.0 <= x <= 16.0 for x in leads), leads  # board_rp2._CAPTURE_LEAD_US = 12
 
@@ -150,7 +152,7 @@ def test_rp_is_the_model_at_the_end_of_the_pulse_within_the_adc_resolution(on_bo
             conv = capture(cfg, samples, p, cfg.ADC_INPUTS[ch])
             total = (t0 + 12 + cfg.ADC_POST_US) // cfg.ADC_SAMPLE_US
             got = conv[total - n:total]
-            v = peak_counts(buf[cfg.ADC_WINDOW - n:])
+            v = peak_counts(buf[cfg.ADC_WINDOW - n:], cfg)
             t_read = max((t - p["rise_ns"]) / US for t, x in got if x == v and t < p["fall_ns"])
             assert 0 <= t_read < t0 and t0 - t_read <= 2 * cfg.ADC_SAMPLE_US
             assert abs(rp - model_ohm(load, t_read)) <= res + 1 + rp / 1000  # (+ di rounded to 1 uA)
@@ -204,3 +206,28 @@ def read_all(bufs, cases, got):
 read_all(bufs, cases, got)
 print(got)""")
     assert out == [packed(v, lo, 32) for v, lo in cases]
+
+
+@pytest.mark.parametrize("t0", [1000, 2001])
+def test_tau_is_read_from_the_decay_after_the_fall_on_the_chip(on_board, cfg, t0):
+    """The harness feeds the ADC the skin's discharge after the fall, V(fall) e^(-t/tau) (host/emu/host.mjs),
+    for the ADC_POST_US the capture runs past it; the firmware's tau (stim._measure: decay.ltau_q16 as
+    mpy-cross built it, on the samples after the edge _peak_counts found) is each load's within 3 %
+    (the counts' rounding: 1 / (amplitude x the windows' span), tests/test_decay.py); a resistor has no
+    decay to read: 0."""
+    script = RUN.replace("c.n_samples, list(b.adc[c.ch])", "c.ltau")
+    for loads in (ELECTRODES[:2], [ELECTRODES[2], (10000, 0, 0)]):
+        for k, (rs, rp, tau) in enumerate(loads):
+            on_board.load(k, rs_ohm=rs, rp_ohm=rp, tau_us=tau)
+        rows = on_board.eval_out(script.format(n=2, mode=sc.MODE_OPEN_LOOP, i0=1000, t0=t0, frames=2))
+        on_board.take()
+        assert len(rows) == 4
+        for ch, di, dt, vp, rp, stop, ltau in rows:
+            assert stop == 0 and di > 0 and dt == t0
+            tau = loads[ch][2]
+            if tau:
+                got = 2 ** (ltau / 65536)
+                print(f"T={t0} us, load {loads[ch]}: tau {got:.1f} us ({got / tau - 1:+.2%})")
+                assert abs(got / tau - 1) < 0.03, (loads[ch], got)
+            else:
+                assert ltau == 0

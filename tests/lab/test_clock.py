@@ -18,7 +18,7 @@ from steadytouch.record import COLUMNS
 
 def telemetry_report(seq, time_us, ch=0, stop=hp.STOP_NONE, flags=hp.FLAG_ARMED):
     b = bytearray(_TELEMETRY.pack(hp.REP_TELEMETRY, ch, 0, stop, seq, time_us, 1000, 1000, 30000, 29000, 10**6,
-                                  25000, 25010, 0, 1000, 1000, 0, 500, flags, 50, 0))
+                                  25000, 25010, 0, 1000, 1000, 0, 500, flags, 50, 0, 0))
     return bytes(b + bytes(hp.REPORT_LEN - len(b)))
 
 
