@@ -42,10 +42,12 @@ _ADC_CLK_HZ = const(48000000)
 # _CAPTURE_LEAD_US: from the ADC's start to the gate's rise on the emulated chip (start()'s
 # timed wait of _LEAD_WAIT_US between the two stores plus the gate program's set-up:
 # 12.9-14.2 us; tests/chip/test_chip_adc.py asserts 12-16). The capture runs to _CAPTURE_POST_US past the
-# edge there (~50 samples after it, ~78 before it in the window); a real chip's flash
-# cache misses only lengthen the lead, which moves the edge later in the window: up to
-# ~90 us more still leaves it inside (and a capture that ended early reads Vp low: a
-# lower charge, never a higher one; its decay is shorter: tau from fewer samples).
+# edge there (~50 samples after it, ~78 before it in the window). Vp reads the samples up
+# to 20 us past the edge (stim._C_PEAK_POST_US: the window before session 24); a real chip's
+# flash cache misses only lengthen the lead, which moves the edge later: ~17 us more takes it
+# out of Vp's samples, which then read low (a lower charge, never a higher one), and the
+# frame seeks the fall past them for tau (fewer samples of the decay: up to ~90 us more
+# leaves it in the window; tests/test_frame_tau.py).
 _CAPTURE_LEAD_US = const(12)
 _CAPTURE_POST_US = const(100)  # board_config.ADC_POST_US (checked in Board()): the monitor's decay after the fall
 _T_FLOOR_US = const(20)  # hp.T_FLOOR_US (checked below): a literal, so the viper start() folds it
@@ -332,7 +334,7 @@ class Board:
         """Start one pulse of t_us at the set amplitude and the capture of the
         monitor across it; returns at once with the number of samples the capture
         will hold: the last n of adc[ch], in time order, the falling edge among
-        them (the capture's last 64 us, see _CAPTURE_LEAD_US). The PIO gate
+        them (the capture's last 256 us, see _CAPTURE_LEAD_US). The PIO gate
         times the pulse and the DMA fills adc[ch] while the CPU goes on; wait() ends the capture. One capture at a time (one ADC):
         a capture still running is waited for first. Allocates nothing.
 

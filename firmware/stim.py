@@ -656,8 +656,17 @@ class Stimulator:
             if lo < w - n:
                 lo = w - n
             x = int(_peak_counts(c.adc, lo, hi))
-            e = x >> 16  # the first sample after the fall
+            e = x >> 16  # the first sample after the fall (the largest drop Vp's samples hold) ...
             x &= 0xFFFF
+            b = ptr16(c.adc)  # ... unless a larger one lies past them: a longer lead than the emulated chip's
+            d = (int(b[e - 1]) - int(b[e])) if lo < e and e < hi else -4096  # (a real chip's flash-cache misses)
+            k = hi  # moved the fall there, and tau reads the samples after it (review of session 24: tau
+            while k < w:  # read from the plateau, 0.6-4.8x, past ~17 us more lead; Vp then reads low: safe)
+                y = int(b[k - 1]) - int(b[k])
+                if y > d:
+                    d = y
+                    e = k
+                k += 1
         uv = v[_UV]
         vp = x * uv // 1000
         v[_VPR] = vp

@@ -38,6 +38,13 @@ N_MIN = const(4)  # samples needed (two windows of 2)
 N_MAX = const(1024)  # a window sum stays below 2**30: 512 samples x 4095 x 16 < 2**25
 DT_MAX_US = const(1000)
 LTAU_END = const(0x140000)  # 20 in Q.16: a tau of 2**20 us (1 s) or more is no decay the capture can read
+# a decay to read: the first window's mean at least MIN_LEVEL_COUNTS above the offset, and the two windows'
+# means at least MIN_DROP_COUNTS apart. On a flat record (a resistor: nothing after the fall) the means of
+# two windows of m = 24 samples differ by 0.82 counts rms at the realistic board's 2.84 counts of noise
+# (8.7 ENOB): 4 counts is 4.9 of that (review of session 24: without it a 10 kohm resistor read a tau
+# on 94 of 200 pulses, 132-7273 us, where skin reads ~480)
+MIN_LEVEL_COUNTS = const(16)
+MIN_DROP_COUNTS = const(4)
 
 
 @micropython.viper
@@ -46,7 +53,9 @@ def ltau_q16(buf, lo: int, n: int, off_x16: int, dt_us: int) -> int:
     unsigned 16-bit, the first after the fall's straddling sample), sampled every dt_us,
     with the monitor's offset off_x16 (counts x 16) taken out. 0 when tau cannot be read:
     n or dt_us out of range (N_MIN..N_MAX, 1..DT_MAX_US), the second window's sum not
-    above 0, or no decay (Sa <= Sb). A tau of 1 us or less also reads 0 (log2 1 = 0):
+    above 0, or no decay to read: the first window's mean less than MIN_LEVEL_COUNTS above
+    the offset, or the two windows' means less than MIN_DROP_COUNTS apart (noise on a flat
+    record, a resistor's). A tau of 1 us or less also reads 0 (log2 1 = 0):
     the capture cannot resolve it (2 us a sample); so does one of LTAU_END or more (a decay
     too flat to read: the windows' sums differ by their rounding)."""
     if n < N_MIN or n > N_MAX or dt_us < 1 or dt_us > DT_MAX_US:
@@ -60,7 +69,7 @@ def ltau_q16(buf, lo: int, n: int, off_x16: int, dt_us: int) -> int:
         sa += int(b[lo + k]) * 16 - off_x16
         sb += int(b[lo + m + k]) * 16 - off_x16
         k += 1
-    if sb <= 0 or sa <= sb:
+    if sb <= 0 or sa < m * (MIN_LEVEL_COUNTS * 16) or sa - sb < m * (MIN_DROP_COUNTS * 16):
         return 0
     d = int(log2q(sa)) - int(log2q(sb))  # log2(Sa / Sb) in Q.16, >= 0 (log2q is monotonic)
     if d <= 0:  # Sa, Sb too close for log2q to part them: no decay to read

@@ -163,6 +163,7 @@ def test_monitor_shows_every_channel(tmp_path):
     p = run("monitor", "--seconds", "1.5", "--device", f"sim://peel?{AUTO}")
     assert p.returncode == 0, p.stderr
     assert "steadytouch monitor" in p.stdout and "\n 0 stimulating" in p.stdout and "\n 1 stimulating" in p.stdout
+    assert "tau us" in p.stdout.splitlines()[1]  # the skin's tau after each pulse (telemetry ltau_q16)
 
 
 def test_monitor_plot_without_a_display_is_one_line():

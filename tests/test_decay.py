@@ -37,9 +37,15 @@ def two_windows(buf, n, off_x16, dt):
 @given(tau=st.floats(20.0, 5000.0), amp=st.integers(200, 3500), off=st.integers(0, 400), n=st.integers(8, 400))
 def test_log2_tau_is_the_two_window_formula_and_near_the_true_tau(tau, amp, off, n):
     buf = samples(tau, amp, off, n)
-    if buf[(n // 2) * 2 - 1] <= off:  # decayed into the offset within the capture: refused or coarse
-        return
     lt = decay.ltau_q16(buf, 0, n, off * 16, DT)
+    m = n // 2
+    sa = sum(buf[k] * 16 - off * 16 for k in range(m))
+    sb = sum(buf[m + k] * 16 - off * 16 for k in range(m))
+    if sa < m * 16 * decay.MIN_LEVEL_COUNTS or sa - sb < m * 16 * decay.MIN_DROP_COUNTS:
+        assert lt == 0  # no decay to read: its level or its drop within the noise of a flat record
+        return
+    if buf[m * 2 - 1] <= off:  # decayed into the offset within the capture: coarse
+        return
     assert lt > 0
     exact = two_windows(buf, n, off * 16, DT)
     # the integer path: log2q's error (< 2**-16 a call) on Sa, Sb, then on their difference d (Q.16),
@@ -65,9 +71,13 @@ def test_what_cannot_be_read_is_zero():
     rising = array("H", range(100, 164))
     assert decay.ltau_q16(rising, 0, 64, 0, DT) == 0
     assert decay.ltau_q16(buf, 0, 64, 4095 * 16, DT) == 0  # the offset above every sample: Sb <= 0
-    flat1 = array("H", [1000] * 63 + [999])  # the windows differ by one count: tau 64 us / ln(1 + 1/31999),
-    assert two_windows(flat1, 64, 0, DT) > 2.04e6  # 2 s: beyond LTAU_END (1 s), no decay to read
-    assert decay.ltau_q16(flat1, 0, 64, 0, DT) == 0 and decay.ltau_q16(samples(2.0e5, 3000, 100, 64), 0, 64, 1600, DT) > 0
+    noisy = array("H", [100 + (k * 7919) % 7 for k in range(64)])  # a resistor's nothing after the fall, noise 0..6
+    assert two_windows(noisy, 64, 0, DT) > 0 and decay.ltau_q16(noisy, 0, 64, 0, DT) == 0  # Sa > Sb by noise alone
+    low = samples(200.0, 15, 0, 64)  # a decay of 15 counts: below MIN_LEVEL_COUNTS
+    assert decay.ltau_q16(low, 0, 64, 0, DT) == 0 and decay.ltau_q16(samples(200.0, 60, 0, 64), 0, 64, 0, DT) > 0
+    slow = array("H", [4095] * 512 + [4091] * 512)  # drops 4 counts: tau 512 dt / ln(4095 / 4091)
+    assert decay.ltau_q16(slow, 0, 1024, 0, 1000) == 0  # 5.2e8 us: beyond LTAU_END (1 s)
+    assert 0 < decay.ltau_q16(slow, 0, 1024, 0, 1) < decay.LTAU_END  # 5.2e5 us at 1 us a sample
     # lo: a window further into the buffer reads the same tau (an exponential has no origin)
     two = array("H", list(samples(100.0, 2000, 100, 16)) + list(buf))
     assert abs(decay.ltau_q16(two, 16, 64, 1600, DT) - decay.ltau_q16(buf, 0, 64, 1600, DT)) == 0
