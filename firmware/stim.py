@@ -45,7 +45,8 @@ except ImportError:  # CPython: no heap lock
 
 
 # 0.2.0: GET_INFO's hard fields are the limits in force (held); 0.3.0: GET_INFO page 1 (the board's own)
-# 0.4.0: telemetry O_SENT_STATUS (the bounds of the pulse delivered: the controller is told them)
+# 0.4.0: telemetry O_SENT_STATUS (the bounds of the pulse delivered: the controller is told them),
+# FLAG_MODE_SET, O_LTAU (the monitor's decay after the fall: the capture runs 100 us past it)
 FW_VERSION = (0, 4, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
@@ -638,9 +639,10 @@ class Stimulator:
 
     @micropython.viper
     def _measure(self, c):
-        """Vp: the end-of-pulse voltage in mV (_peak_counts over the board's window
-        of the last n samples, the falling edge among them, with its spike guard). Rp from Vp and the delivered
-        current (0: no pulse). Machine-word arithmetic, every value < 2**30 (uv_per_count is
+        """Vp: the end-of-pulse voltage in mV (_peak_counts over the window's samples up to
+        _C_PEAK_POST_US past the fall, with its spike guard). Rp from Vp and the delivered current
+        (0: no pulse). log2 tau of the decay after the fall (decay.ltau_q16; 0: none to read).
+        Machine-word arithmetic, every value < 2**30 (uv_per_count is
         checked at set-up: 4096 x it < 2**30), so 32-bit (ARM) and 64-bit (x64) words agree
         with CPython's ints; nothing allocated."""
         v = ptr32(c.v)
