@@ -1,0 +1,117 @@
+"""skin_model.SkinModel.anchor_tau: S and Cp from one reading and the monitor's decay after it
+(tau = R(I) Cp), in closed form, the next step of the tau path (docs/performance.md; not yet used
+by MODE_FAST's jump). The model it sets reads the Rp back and has the tau it was given, for skins
+across the accepted parameters; its refusals; bit-identical in the MicroPython VM and allocation-free
+under the heap lock."""
+
+import json
+import math
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import sensation_core as sc
+import skin_model as sm
+from fixmath import log2q
+
+from conftest import UNDER_HEAP_LOCK, run_mp
+
+
+def model(rs, beta_q16):
+    c = sc.Controller(100, 10000, 20, 8000, 30000000)
+    c.calibrate(1000, 1000, 20000, -1670, 186000)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(rs, beta_q16, 14000)
+    return c.skin
+
+
+def reading(rs, beta_q16, s_ohm, cp_pf, i_ua, t_us):
+    """Rp (ohm, rounded) and log2 tau (us, Q.16, rounded) of the model's skin for a pulse."""
+    r = s_ohm * (i_ua / 1000) ** (-beta_q16 / 65536)
+    tau = r * cp_pf / 1e6
+    return round(rs + r * (1 - math.exp(-t_us / tau))), round(math.log2(tau) * 65536), r, tau
+
+
+@settings(max_examples=400, deadline=None)
+@given(rs=st.integers(0, 5000), beta=st.integers(sm.SKIN_BETA_MIN_Q16, sm.SKIN_BETA_MAX_Q16),
+       ls=st.floats(10.0, 17.5), lcp=st.floats(math.log2(200), math.log2(1e6)),
+       i=st.integers(100, 10000), t=st.integers(20, 8000))
+def test_the_model_anchored_on_tau_reads_the_pulse_back_with_that_tau(rs, beta, ls, lcp, i, t):
+    m = model(rs, beta)
+    rp, ltau, r, tau = reading(rs, beta, 2 ** ls, 2 ** lcp, i, t)
+    if rp - rs < 64 or r > 2 ** 19 or rp > sc.RP_MAX_OHM or tau < 2:  # (refused by the anchor, the core or decay)
+        return
+    assert m.anchor_tau(rp, ltau, i, t) == 1
+    # the model set reads the pulse back: Rp within its rounding (1/2 ohm) and the anchor's 2**-16 steps,
+    # magnified where the pulse charges Cp fully (z near 1: R from Rp - Rs alone) or barely (z ~ T/tau)
+    got = m.rp(m.ls, m.lc, log2q(i), log2q(t))
+    z = 1 - math.exp(-t / tau)  # (the model's own evaluation: z to 2**-16, relative 2**-16 / z)
+    assert abs(got - rp) <= 1 + rp * (2e-4 + 1.5 / (65536 * z)), (got, rp, z)
+    # ... with the tau it was given: log2 R(I) + log2 Cp - log2 1e6
+    lr = m.ls - ((log2q(i) - sm._L_1MA) * beta >> 16)
+    assert abs(lr + m.lc - sm._L_1E6 - ltau) <= 40, (lr + m.lc - sm._L_1E6 - ltau)  # 40/65536 octave: 0.04 %
+    # and the skin's own S, Cp within what Rp's rounding allows (1/2 ohm of Rp - Rs)
+    tol = 2e-4 + 1.0 / (rp - rs)
+    assert abs(2 ** (lr / 65536) / r - 1) < tol and abs(2 ** (m.lc / 65536) / (2 ** lcp) - 1) < tol + 1e-4
+
+
+def test_what_cannot_be_anchored_sets_nothing():
+    m = model(500, 36045)
+    rp, ltau, _, _ = reading(500, 36045, 20000, 14000, 1000, 1000)
+    assert m.anchor_tau(rp, ltau, 1000, 1000) == 1
+    ls, lc = m.ls, m.lc
+    assert m.anchor_tau(rp, 0, 1000, 1000) == 0  # no tau read (decay.ltau_q16's 0)
+    assert m.anchor_tau(515, ltau, 1000, 1000) == 0  # Rp - Rs below 16 ohm
+    assert m.anchor_tau(rp, 20 << 16, 1000, 20) == 0  # T / tau below 2**-16
+    assert m.anchor_tau(rp, ltau + (12 << 16), 1000, 1000) == 0  # Cp 4096 x: above 2 x SKIN_CP_MAX_PF
+    assert m.anchor_tau(rp, ltau - (12 << 16), 1000, 1000) == 0  # Cp / 4096: below SKIN_CP_MIN_PF / 8
+    assert (m.ls, m.lc) == (ls, lc)  # a refusal leaves the model as it was
+
+
+DRIVER = """
+import sys, json, micropython
+sys.path.insert(0, '')
+import sensation_core as sc
+cases = json.loads(sys.stdin.read())
+out = []
+for rs, beta, rp, ltau, i, t in cases:
+    c = sc.Controller(100, 10000, 20, 8000, 30000000)
+    c.calibrate(1000, 1000, 20000, -1670, 186000)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(rs, beta, 14000)
+    m = c.skin
+    out.append([m.anchor_tau(rp, ltau, i, t), m.ls, m.lc])
+rs, beta, rp, ltau, i, t = cases[0]
+def f(k):
+    r = 0
+    for _ in range(k):
+        r = m.anchor_tau(rp, ltau, i, t)
+    return r
+r, err = under_heap_lock(f, 50)
+print(json.dumps([out, r, err is None]))
+"""
+
+
+def test_bit_identical_in_the_micropython_vm_and_allocation_free(micropython, core_mpy_dir, tmp_path):
+    import random
+
+    rng = random.Random(7)
+    cases = []
+    for _ in range(300):
+        rs, beta = rng.randint(0, 5000), rng.randint(sm.SKIN_BETA_MIN_Q16, sm.SKIN_BETA_MAX_Q16)
+        i, t = rng.randint(100, 10000), rng.randint(20, 8000)
+        rp, ltau, _, _ = reading(rs, beta, 2 ** rng.uniform(10, 17.5), 2 ** rng.uniform(7.6, 20), i, t)
+        cases.append([rs, beta, rp, ltau, i, t])
+    cases[0] = [500, 36045] + list(reading(500, 36045, 20000, 14000, 1000, 1000)[:2]) + [1000, 1000]
+    script = tmp_path / "drv.py"
+    script.write_text(UNDER_HEAP_LOCK + DRIVER)
+    p = run_mp(micropython, script, [core_mpy_dir], stdin=json.dumps(cases))
+    assert p.returncode == 0, p.stderr[-2000:]
+    got, r, no_alloc = json.loads(p.stdout.strip().splitlines()[-1])
+    want = []
+    for rs, beta, rp, ltau, i, t in cases:
+        m = model(rs, beta)
+        want.append([m.anchor_tau(rp, ltau, i, t), m.ls, m.lc])
+    assert got == want
+    assert sum(1 for x in want if x[0]) > 200  # most anchored: the comparison is not of refusals
+    assert no_alloc and r == want[0][0] == 1
