@@ -32,7 +32,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 
 from fast_step import ceiling_bound
-from fixmath import _EXP_TAB, _LOG_TAB, exp2q, log2q, mul_q16, word
+from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
 
 # fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
 # array (one global lookup a _root call): _root's inline interpolations read the
@@ -919,44 +919,6 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
-
-    @micropython.viper
-    def anchor_tau(self, rp_ohm: int, ltau: int, i_ua: int, t_us: int) -> int:
-        """S and Cp from one reading and the monitor's decay after it, in closed form (the next
-        step of the tau path, docs/performance.md; not yet used by jump): with tau = R(I) Cp and
-        Rp = Rs + R(I) (1 - exp(-T / tau)), R(I) = (Rp - Rs) / z, z = 1 - exp(-T / tau), so
-        log2 S = log2 R(I) + beta (log2 I - log2 1 mA) and log2 Cp = log2 tau + log2 1e6 - log2 R(I).
-        ltau: log2 tau (us) in Q.16 (decay.ltau_q16). Sets self.ls, self.lc and returns 1; 0 (nothing
-        set) when tau is unread (ltau <= 0), Rp - Rs < 16 ohm, T / tau below 2**-16, R(I) above 2**20
-        ohm or Cp outside 1/8 x SKIN_CP_MIN_PF ... 2 x SKIN_CP_MAX_PF. Integer; allocation-free."""
-        if ltau <= 0 or i_ua < 1 or t_us < 1:
-            return 0
-        v = ptr32(self.v)
-        n = rp_ohm - v[_V_RS]
-        if n < 16:
-            return 0
-        lx = int(log2q(t_us)) - ltau  # log2 (T / tau), Q.16
-        if lx < -0x100000:  # T / tau < 2**-16
-            return 0
-        if lx >= _L_Z12:  # exp(-T / tau) < 2**-17: z = 1
-            lz = 0
-        else:
-            xq = int(exp2q(lx + 0x100000))  # T / tau in Q.16 (< 12 * 2**16)
-            if xq < 0x2000:  # x = T / tau < 1/8: z = x (1 - x/2 + x**2/6 - x**3/24), to 2e-6, from lx
-                xx = xq * xq  # (relative precision kept where z is small: 1 - exp(-x) in Q.20 lost it)
-                lz = lx + int(log2q(0x10000 - (xq >> 1) + xx // 393216 - ((xx >> 16) * xq) // 1572864)) - 0x100000
-            else:
-                zq = 0x100000 - int(exp2q(0x140000 - int(mul_q16(xq, _L_E))))  # (1 - exp(-x)) in Q.20, >= 4080
-                lz = int(log2q(zq)) - 0x140000
-        lr = int(log2q(n)) - lz  # log2 R(I)
-        if lr > _L_R_MAX:
-            return 0
-        lc = ltau + _L_1E6 - lr
-        if lc < int(log2q(SKIN_CP_MIN_PF)) - 0x30000 or lc > int(log2q(SKIN_CP_MAX_PF)) + 0x10000:
-            return 0
-        v[_V_LS] = lr + int(mul_q16(int(log2q(i_ua)) - _L_1MA, v[_V_BETA])) + _V_BIAS
-        v[_V_LC] = lc + _V_BIAS
-        return 1
 
     @micropython.native
     def rp(self, ls, lc, li, lt):

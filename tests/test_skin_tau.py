@@ -1,4 +1,4 @@
-"""skin_model.SkinModel.anchor_tau: S and Cp from one reading and the monitor's decay after it
+"""skin_tau.anchor_tau: S and Cp from one reading and the monitor's decay after it
 (tau = R(I) Cp), in closed form, the next step of the tau path (docs/performance.md; not yet used
 by MODE_FAST's jump). The model it sets reads the Rp back and has the tau it was given, for skins
 across the accepted parameters; its refusals; bit-identical in the MicroPython VM and allocation-free
@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import sensation_core as sc
 import skin_model as sm
+from skin_tau import anchor_tau
 from fixmath import log2q
 
 from conftest import UNDER_HEAP_LOCK, run_mp
@@ -41,7 +42,7 @@ def test_the_model_anchored_on_tau_reads_the_pulse_back_with_that_tau(rs, beta, 
     rp, ltau, r, tau = reading(rs, beta, 2 ** ls, 2 ** lcp, i, t)
     if rp - rs < 64 or r > 2 ** 19 or rp > sc.RP_MAX_OHM or tau < 2:  # (refused by the anchor, the core or decay)
         return
-    assert m.anchor_tau(rp, ltau, i, t) == 1
+    assert anchor_tau(m, rp, ltau, i, t) == 1
     # the model set reads the pulse back: Rp within its rounding (1/2 ohm) and the anchor's 2**-16 steps,
     # magnified where the pulse charges Cp fully (z near 1: R from Rp - Rs alone) or barely (z ~ T/tau)
     got = m.rp(m.ls, m.lc, log2q(i), log2q(t))
@@ -55,16 +56,24 @@ def test_the_model_anchored_on_tau_reads_the_pulse_back_with_that_tau(rs, beta, 
     assert abs(2 ** (lr / 65536) / r - 1) < tol and abs(2 ** (m.lc / 65536) / (2 ** lcp) - 1) < tol + 1e-4
 
 
+def test_its_copies_of_skin_models_words_and_constants_agree():
+    import skin_tau as st
+
+    names = ("_V_RS", "_V_BETA", "_V_LS", "_V_LC", "_V_BIAS", "_L_1E6", "_L_E", "_L_1MA", "_L_Z12", "_L_R_MAX")
+    assert [getattr(st, k) for k in names] == [getattr(sm, k) for k in names]
+    assert (st._LC_MIN, st._LC_MAX) == (log2q(sm.SKIN_CP_MIN_PF) - 0x30000, log2q(sm.SKIN_CP_MAX_PF) + 0x10000)
+
+
 def test_what_cannot_be_anchored_sets_nothing():
     m = model(500, 36045)
     rp, ltau, _, _ = reading(500, 36045, 20000, 14000, 1000, 1000)
-    assert m.anchor_tau(rp, ltau, 1000, 1000) == 1
+    assert anchor_tau(m, rp, ltau, 1000, 1000) == 1
     ls, lc = m.ls, m.lc
-    assert m.anchor_tau(rp, 0, 1000, 1000) == 0  # no tau read (decay.ltau_q16's 0)
-    assert m.anchor_tau(515, ltau, 1000, 1000) == 0  # Rp - Rs below 16 ohm
-    assert m.anchor_tau(rp, 20 << 16, 1000, 20) == 0  # T / tau below 2**-16
-    assert m.anchor_tau(rp, ltau + (12 << 16), 1000, 1000) == 0  # Cp 4096 x: above 2 x SKIN_CP_MAX_PF
-    assert m.anchor_tau(rp, ltau - (12 << 16), 1000, 1000) == 0  # Cp / 4096: below SKIN_CP_MIN_PF / 8
+    assert anchor_tau(m, rp, 0, 1000, 1000) == 0  # no tau read (decay.ltau_q16's 0)
+    assert anchor_tau(m, 515, ltau, 1000, 1000) == 0  # Rp - Rs below 16 ohm
+    assert anchor_tau(m, rp, 20 << 16, 1000, 20) == 0  # T / tau below 2**-16
+    assert anchor_tau(m, rp, ltau + (12 << 16), 1000, 1000) == 0  # Cp 4096 x: above 2 x SKIN_CP_MAX_PF
+    assert anchor_tau(m, rp, ltau - (12 << 16), 1000, 1000) == 0  # Cp / 4096: below SKIN_CP_MIN_PF / 8
     assert (m.ls, m.lc) == (ls, lc)  # a refusal leaves the model as it was
 
 
@@ -72,6 +81,7 @@ DRIVER = """
 import sys, json, micropython
 sys.path.insert(0, '')
 import sensation_core as sc
+from skin_tau import anchor_tau
 cases = json.loads(sys.stdin.read())
 out = []
 for rs, beta, rp, ltau, i, t in cases:
@@ -80,12 +90,12 @@ for rs, beta, rp, ltau, i, t in cases:
     c.set_mode(sc.MODE_FAST)
     c.set_skin(rs, beta, 14000)
     m = c.skin
-    out.append([m.anchor_tau(rp, ltau, i, t), m.ls, m.lc])
+    out.append([anchor_tau(m, rp, ltau, i, t), m.ls, m.lc])
 rs, beta, rp, ltau, i, t = cases[0]
 def f(k):
     r = 0
     for _ in range(k):
-        r = m.anchor_tau(rp, ltau, i, t)
+        r = anchor_tau(m, rp, ltau, i, t)
     return r
 r, err = under_heap_lock(f, 50)
 print(json.dumps([out, r, err is None]))
@@ -111,7 +121,7 @@ def test_bit_identical_in_the_micropython_vm_and_allocation_free(micropython, co
     want = []
     for rs, beta, rp, ltau, i, t in cases:
         m = model(rs, beta)
-        want.append([m.anchor_tau(rp, ltau, i, t), m.ls, m.lc])
+        want.append([anchor_tau(m, rp, ltau, i, t), m.ls, m.lc])
     assert got == want
     assert sum(1 for x in want if x[0]) > 200  # most anchored: the comparison is not of refusals
     assert no_alloc and r == want[0][0] == 1
