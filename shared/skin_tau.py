@@ -5,8 +5,9 @@ With tau = R(I) Cp read after a pulse (decay.ltau_q16) and that pulse's Rp, the 
 follow in closed form: Rp = Rs + R(I) (1 - exp(-T / tau)), so R(I) = (Rp - Rs) / z,
 z = 1 - exp(-T / tau); log2 S = log2 R(I) + beta (log2 I - log2 1 mA), log2 Cp = log2 tau +
 log2 1e6 - log2 R(I). A module of its own until the jump calls it: on the chip a module not
-imported takes no RAM (one more viper function in skin_model tipped the chip's store of a 4 KB
-monitor-correction file past the watchdog: tests/chip/test_chip_vmon.py). Integer, allocation-free.
+imported costs nothing at boot (in skin_model this one viper function lengthened the boot enough
+that tests/chip/test_chip_vmon.py's 1.5 s of emulated time ended before its second store's ack;
+2.5 s passed: the boot's time, not the watchdog). Integer, allocation-free.
 """
 
 try:
