@@ -1085,7 +1085,7 @@ class Stimulator:
                     c.stop = hp.STOP_NONE
                     c.i = c.i0
                     c.t = c.t0
-                    c.v[_SS] = sc.ST_OK  # (the calibration pulse: the controller's I0, T0)
+                    c.sent_status = sc.ST_OK  # (the calibration pulse: the controller's I0, T0)
                 k += 1
             return self._ack(r, hp.RES_OK, 0)
         if cmd == hp.CMD_SET_MODE:

@@ -35,8 +35,8 @@ class MonitorState:
 
     def render(self, url: str = "", lost: int = 0) -> str:
         head = f"steadytouch monitor  {url}   lost reports: {lost}"
-        cols = (f"{'ch':>2} {'state':<24} {'I uA':>6} {'T us':>5} {'Vp mV':>7} {'Rp ohm':>7} {'tau us':>6} {'mE uA2ms':>9} "
-                f"{'mQ target':>10} {'mQ meas':>10} {'err uC/kohm':>12} {'rate Hz':>7} {'bounds':<12}")
+        cols = (f"{'ch':>2} {'state':<24} {'I uA':>6} {'T us':>5} {'Vp mV':>7} {'Rp ohm':>7} {'tau us':>6} "
+                f"{'mE uA2ms':>9} {'mQ target':>10} {'mQ meas':>10} {'err uC/kohm':>12} {'rate Hz':>7} {'bounds':<12}")
         lines = [head, cols, "-" * len(cols)]
         for ch in sorted(self.last):
             t = self.last[ch]

@@ -10,6 +10,7 @@ import operator
 import struct
 from dataclasses import dataclass
 
+import decay
 import hid_protocol as hp
 import sensation_core as sc
 
@@ -243,7 +244,6 @@ class CalInfo:
 _WRAP = 1 << 30  # seq and time_us wrap here; 32-bit fields stay below it in magnitude
 _STATUS_BITS = sc.ST_BOUND_MASK | sc.ST_FAULT_MASK
 _SENT_BITS = sc.ST_BOUND_MASK  # (a pulse is never sent with a fault)
-_LTAU_END = 20 << 16  # decay.LTAU_END: log2 tau in Q.16 below 20 (the firmware reads 0 beyond)
 _FLAG_BITS = hp.FLAG_ARMED | hp.FLAG_HELD | hp.FLAG_KEEPALIVE | hp.FLAG_CALIBRATING | hp.FLAG_MODE_SET
 
 
@@ -271,7 +271,7 @@ def _check_telemetry(t: Telemetry):
     _need(not t.status & ~_STATUS_BITS, "status", f"0x{t.status:x}", f"bits of 0x{_STATUS_BITS:x}")
     _need(not t.sent_status & ~_SENT_BITS, "sent_status", f"0x{t.sent_status:x}", f"bits of 0x{_SENT_BITS:x}")
     _need(t.i_ua or not t.sent_status, "sent_status", f"0x{t.sent_status:x}", "0 in a frame without a pulse")
-    _need(t.ltau_q16 < _LTAU_END, "ltau_q16", t.ltau_q16, f"0..{_LTAU_END - 1} (tau below 2**20 us)")
+    _need(t.ltau_q16 < decay.LTAU_END, "ltau_q16", t.ltau_q16, f"0..{decay.LTAU_END - 1} (tau below 2**20 us)")
     _need(t.i_ua or not t.ltau_q16, "ltau_q16", t.ltau_q16, "0 in a frame without a pulse")
     _need(t.next_i_ua <= sc.I_LIMIT_UA, "next_i_ua", t.next_i_ua, f"0..{sc.I_LIMIT_UA}")
     _need(t.next_t_us <= sc.T_LIMIT_US, "next_t_us", t.next_t_us, f"0..{sc.T_LIMIT_US}")
