@@ -50,6 +50,7 @@ import board_sim  # noqa: E402
 import sensation_core as sc  # noqa: E402
 from host import skin  # noqa: E402
 from sim_electrode import Electrode  # noqa: E402
+import vmon_cal  # noqa: E402
 
 X, Y = -1670, 186000
 LIMITS = (100, 10000, 50, 8000, 10_000_000)
@@ -216,8 +217,10 @@ def peak_counts(buf, n, edge=None, px=0):
 class Meter:
     """Rp as the firmware reads it, through the simulated board (board_sim.SimBoard,
     `real` = the realistic analog path, `ideal` = the ideal one): the DAC's code,
-    the ADC's window of samples around the fall, the firmware's peak in mV, Rp = Vp / I_delivered. A frame
-    (20 ms at 50 Hz) passes between pulses, so the DAC settles as on the board."""
+    the ADC's window of samples around the fall, the firmware's peak in mV with the monitor correction
+    (`correction`, as `steadytouch selftest` stores it, applied as stim._measure does: vmon_cal.correct;
+    until session 25 the Meter took it and never applied it), Rp = Vp / I_delivered. A frame (20 ms at
+    50 Hz) passes between pulses, so the DAC settles as on the board."""
 
     def __init__(self, e, board, seed=1, correction=None, adc_us=None):
         c = cfg
@@ -227,6 +230,8 @@ class Meter:
         self.b = board_sim.SimBoard(c, board_sim.VirtualClock(), _Hold(e), 1, seed, electrodes=[e],
                                     ideal=(board == "ideal"), correction=correction)
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
+        cal = correction[0] if correction else None
+        self.terms = vmon_cal.terms(cal[0], cal[1], cfg.VMON_UV_PER_COUNT) if cal else None
 
     def pulse(self, i_ua, t_us):
         """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse."""
@@ -235,8 +240,12 @@ class Meter:
         b.clock.advance(20000 - t_us)
         n = b.fire(0, t_us)
         px = max(0, b.post_us - 20) // b.dt_us  # (stim._measure's _PX: the read ends 20 us past the fall)
-        vp = peak_counts(b.adc[0], n, b.last_edge[0], px) * cfg.VMON_UV_PER_COUNT // 1000
-        rp = sc.RP_OVER if vp >= self.vp_off else sc.rp_from_vp(vp, di)
+        x = peak_counts(b.adc[0], n, b.last_edge[0], px)
+        vpr = x * cfg.VMON_UV_PER_COUNT // 1000  # (the raw read: electrode off on it too, as the firmware)
+        if self.terms:
+            x = vmon_cal.correct(x, *self.terms)
+        vp = x * cfg.VMON_UV_PER_COUNT // 1000
+        rp = sc.RP_OVER if (vp >= self.vp_off or vpr >= self.vp_off) else sc.rp_from_vp(vp, di)
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 
 
