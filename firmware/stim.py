@@ -47,7 +47,8 @@ except ImportError:  # CPython: no heap lock
 # 0.2.0: GET_INFO's hard fields are the limits in force (held); 0.3.0: GET_INFO page 1 (the board's own)
 # 0.4.0: telemetry O_SENT_STATUS (the bounds of the pulse delivered: the controller is told them),
 # FLAG_MODE_SET, O_LTAU (the monitor's decay after the fall: the capture runs 100 us past it)
-FW_VERSION = (0, 4, 0)
+# 0.4.1: GET_INFO's Calibration report carries the channel's skin model (bytes 52-61: `audit` replays it)
+FW_VERSION = (0, 4, 1)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
@@ -1016,6 +1017,10 @@ class Stimulator:
         hp.put_i32(b, hp.O_CAL_VMON_GAIN, c.vmon_g)
         hp.put_i32(b, hp.O_CAL_VMON_OFF, c.vmon_off)
         hp.put_i32(b, hp.O_CAL_DAC_GAIN, c.vmon_dac)
+        ctl = c.ctl  # the skin model as set (`record` writes it into the header: `audit` replays MODE_FAST with it)
+        hp.put_u16(b, hp.O_CAL_SKIN_RS, ctl.skin_rs_ohm)
+        hp.put_i32(b, hp.O_CAL_SKIN_BETA, ctl.skin_beta_q16)
+        hp.put_i32(b, hp.O_CAL_SKIN_CP, ctl.skin_cp_pf)
         b[hp.O_CAL_VMON_STATE] = self.vmon_state
         hp.put_u16(b, hp.O_CAL_I0, c.i0)
         hp.put_u16(b, hp.O_CAL_T0, c.t0)

@@ -15,6 +15,8 @@ from .record import RecordingError, meta_int
 
 AUDIT_COLUMNS = ("mode", "flags", "stop", "next_i_ua", "next_t_us")
 SENT_STATUS_FIRMWARE = (0, 4, 0)  # the first firmware that reports the status of the pulse sent (telemetry sent_status)
+SKIN_FIRMWARE = (0, 4, 1)  # the first whose `record` header holds each channel's skin model (GET_INFO's Calibration)
+SKIN_KEYS = ("skin_rs_ohm", "skin_beta_q16", "skin_cp_pf")
 
 
 def _firmware(meta: dict, path) -> tuple | None:
@@ -42,6 +44,7 @@ class AuditResult:
     checked: int
     mismatches: list[Mismatch]
     skipped: int  # pulses before the replay had a calibration (or on a channel the header does not calibrate)
+    no_skin: bool = False  # MODE_FAST pulses replayed on a channel whose header has no skin model (an older firmware)
 
 
 def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
@@ -67,6 +70,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
             cal = tuple(meta_int(meta, f"ch{ch}_{k}", path) for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"))
             cals[ch] = cal
             c = sc.Controller(*lim)
+            _skin(c, meta, f"ch{ch}_", path)
             rp0 = int(meta.get(f"ch{ch}_rp0_ohm", "0") or 0)
             if rp0:
                 c.calibrate(cal[0], cal[1], rp0, cal[2], cal[3])
@@ -76,12 +80,32 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         for ch in range(4):
             cals[ch] = cal
             ctls[ch] = sc.Controller(*lim)
+            _skin(ctls[ch], meta, "", path)
     if not cals:
         raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
     try:
-        return _replay(rows, ctls, cals, sent)
+        r = _replay(rows, ctls, cals, sent)
     except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
         raise RecordingError(f"{path}: {e}") from None
+    r.no_skin = any(row["mode"] == sc.MODE_FAST and row["channel"] in ctls and not ctls[row["channel"]].skin.on
+                    and not _has_skin(meta, row["channel"]) for row in rows) and (fw is None or fw < SKIN_FIRMWARE)
+    return r
+
+
+def _has_skin(meta, ch) -> bool:
+    return f"ch{ch}_skin_rs_ohm" in meta or "skin_rs_ohm" in meta
+
+
+def _skin(c, meta, prefix, path):
+    """MODE_FAST's skin model from the header (`record`: GET_INFO's Calibration report, firmware 0.4.1 on),
+    as the device's controller had it; none in the header: none (0 0 0)."""
+    if prefix + SKIN_KEYS[0] not in meta:
+        return
+    v = [meta_int(meta, prefix + k, path) for k in SKIN_KEYS]
+    try:
+        c.set_skin(*v)
+    except ValueError as e:
+        raise RecordingError(f"{path}: the skin model in the header is not valid: {e}") from None
 
 
 def _replay(rows, ctls, cals, sent) -> AuditResult:

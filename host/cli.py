@@ -256,6 +256,9 @@ def cmd_info(a) -> int:
                 mon = (f"monitor gain {c.vmon_gain_ppm / 1e6:.4f} offset {c.vmon_offset_mv:+d} mV"
                        if c.vmon_gain_ppm else "monitor uncorrected")
                 say(f"  ch{ch}: {mon}, {dac}")
+            if c.skin_rs_ohm or c.skin_beta_q16 or c.skin_cp_pf:  # (firmware 0.4.1 on: MODE_FAST's model)
+                say(f"  ch{ch}: skin model Rs {c.skin_rs_ohm} ohm, beta {c.skin_beta_q16 / 65536:.3f}, "
+                    f"Cp {c.skin_cp_pf} pF")
         say(f"  correction: {VMON_STATE_WORDS.get(i.vmon_state, i.vmon_state)}")
     return 0
 
@@ -538,6 +541,9 @@ def device_meta(d: Device, url: str) -> dict:
         if c.calibrated:
             meta.update({f"ch{ch}_i0_ua": c.i0_ua, f"ch{ch}_t0_us": c.t0_us, f"ch{ch}_x_star_ohm": c.x_star_ohm,
                          f"ch{ch}_y_star_pc": c.y_star_pc, f"ch{ch}_rp0_ohm": c.rp0_ohm})
+            if i.reports_skin:  # (MODE_FAST's model: `audit` replays it; 0 0 0 none)
+                meta.update({f"ch{ch}_skin_rs_ohm": c.skin_rs_ohm, f"ch{ch}_skin_beta_q16": c.skin_beta_q16,
+                             f"ch{ch}_skin_cp_pf": c.skin_cp_pf})
     meta["started"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     return meta
 
@@ -759,6 +765,9 @@ def cmd_audit(a) -> int:
     if r.checked == 0:
         say(f"{a.file}: no pulse could be replayed: the recording has no calibration pulse and its header no Rp0")
         return 1
+    if r.mismatches and r.no_skin:
+        say(f"{a.file}: its header has no skin model (recorded from firmware before 0.4.1): MODE_FAST's pulses were "
+            "replayed without the one the device had, so they can differ (`steadytouch flash` updates the board)")
     verdict = "bit-exact" if not r.mismatches else f"{len(r.mismatches)} MISMATCH(ES)"
     say(f"{a.file}: {r.checked} pulses replayed through sensation_core: {verdict}"
         + (f" ({r.skipped} before a calibration was known, skipped)" if r.skipped else ""))

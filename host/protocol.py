@@ -174,6 +174,11 @@ class Info:
         return tuple(int(x) for x in self.firmware.split(".")) >= FW_HELD_LIMITS
 
     @property
+    def reports_skin(self) -> bool:
+        """Firmware 0.4.1 on: each channel's Calibration report carries its skin model (before it: 0s there)."""
+        return tuple(int(x) for x in self.firmware.split(".")) >= FW_SKIN
+
+    @property
     def dac_low(self) -> bool:
         """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits x the DAC gain applied on
         a channel / VMON_DAC_PPM_MAX (every channel has one; INFO_FLAG_DAC_LOW; firmware before it: never set)."""
@@ -195,6 +200,7 @@ HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held b
 
 FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
 FW_OWN_LIMITS = (0, 3, 0)  # the first released with GET_INFO page 1, the board's own limits (Device.own_limits)
+FW_SKIN = (0, 4, 1)  # the first whose Calibration report carries the channel's skin model (Info.reports_skin)
 DAC_LOW_REASON = ("its hard limits are the board's own x the lowest DAC gain measured / {:g} (the top of the gain's "
                   "window: the current delivered stays within the board's own whatever the DAC's true gain; "
                   "`steadytouch info` shows each channel's DAC gain)").format(hp.VMON_DAC_PPM_MAX / 1e6)
@@ -231,6 +237,9 @@ class CalInfo:
     vmon_offset_mv: int = 0
     vmon_state: int = hp.VMON_NONE
     dac_gain_ppm: int = 0  # the amplitude DAC's gain applied (0: nominal)
+    skin_rs_ohm: int = 0  # MODE_FAST's skin model as set (all 0: none; firmware before 0.4.1 sends 0s)
+    skin_beta_q16: int = 0
+    skin_cp_pf: int = 0
 
     @property
     def ok(self) -> bool:
@@ -316,6 +325,12 @@ def _check_cal(c: CalInfo):
     _need(c.rp0_ohm == 0 or sc.RP_MIN_OHM <= c.rp0_ohm <= sc.RP_MAX_OHM, "rp0_ohm", c.rp0_ohm,
           f"0 or {sc.RP_MIN_OHM}..{sc.RP_MAX_OHM}")
     _need(c.mode in sc.MODES, "mode", c.mode, f"{min(sc.MODES)}..{max(sc.MODES)}")
+    skin = (c.skin_rs_ohm, c.skin_beta_q16, c.skin_cp_pf)
+    _need(skin == (0, 0, 0) or (c.skin_rs_ohm <= sc.SKIN_RS_MAX_OHM
+                                and sc.SKIN_BETA_MIN_Q16 <= c.skin_beta_q16 <= sc.SKIN_BETA_MAX_Q16
+                                and sc.SKIN_CP_MIN_PF <= c.skin_cp_pf <= sc.SKIN_CP_MAX_PF), "skin",
+          "%d ohm, %d, %d pF" % skin, f"0, 0, 0 or Rs 0..{sc.SKIN_RS_MAX_OHM} ohm, beta {sc.SKIN_BETA_MIN_Q16}.."
+          f"{sc.SKIN_BETA_MAX_Q16} (Q.16), Cp {sc.SKIN_CP_MIN_PF}..{sc.SKIN_CP_MAX_PF} pF")
 
 
 def decode(report: bytes):
@@ -378,7 +393,8 @@ def decode(report: bytes):
         vg, vo = struct.unpack_from("<ii", report, hp.O_CAL_VMON_GAIN)
         c = CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
                     report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE], vg, vo,
-                    report[hp.O_CAL_VMON_STATE], struct.unpack_from("<i", report, hp.O_CAL_DAC_GAIN)[0])
+                    report[hp.O_CAL_VMON_STATE], struct.unpack_from("<i", report, hp.O_CAL_DAC_GAIN)[0],
+                    *struct.unpack_from("<HII", report, hp.O_CAL_SKIN_RS))
         _check_cal(c)
         return c
     raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")

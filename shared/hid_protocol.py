@@ -279,6 +279,9 @@ O_CAL_VMON_GAIN = const(36)  # i32 ppm applied to this channel's monitor (0: unc
 O_CAL_VMON_OFF = const(40)  # i32 mV
 O_CAL_VMON_STATE = const(44)  # u8, as O_INFO_VMON
 O_CAL_DAC_GAIN = const(48)  # i32 ppm applied to this channel's amplitude DAC (0: nominal)
+O_CAL_SKIN_RS = const(52)  # MODE_FAST's skin model as set (SET_SKIN; all 0: none), firmware 0.4.1 on: u16 Rs (ohm),
+O_CAL_SKIN_BETA = const(54)  # u32 beta (Q.16),
+O_CAL_SKIN_CP = const(58)  # u32 Cp (pF)
 CAL_FLAG_VMON = const(0x08)
 CAL_FLAG_DAC = const(0x10)
 # OUT

@@ -806,3 +806,39 @@ def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     meta, rows = _recording(tel, results[0]["lim"])
     res = audit(meta, rows)
     assert res.checked == len(tel) and res.mismatches == []
+
+
+def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports():
+    """Firmware 0.4.1: GET_INFO's Calibration report carries the channel's skin model (bytes 52-61), `record`
+    writes it into the header (ch<n>_skin_rs_ohm, _beta_q16, _cp_pf) and `audit` replays MODE_FAST with it.
+    Before, the header had no model and a FAST run with one could not replay (the check fails without it)."""
+    from steadytouch.audit import audit
+    from steadytouch.protocol import CalInfo
+    from steadytouch.record import RecordingError
+
+    reports, results, _ = run_fw("""
+        s, board, usb, clock = make("gel-step", n=1)
+        assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, 500, 36045, 14000)) == 0
+        start(s, mode=sc.MODE_FAST)
+        s.run(199)
+        command(s, hp.cmd_get_info(bytearray(64), 0, 0))  # (answered in the next frame)
+        s.run(1)
+        dump(usb)
+        result(lim=list(s.lim), jumps=s.chans[0].ctl.model_jumps)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    cal = [r for r in reports if isinstance(r, CalInfo)]
+    assert len(tel) == 200 and len(cal) == 1 and results[0]["jumps"] >= 3, results
+    assert (cal[0].skin_rs_ohm, cal[0].skin_beta_q16, cal[0].skin_cp_pf) == (500, 36045, 14000)
+    flat, rows = _recording(tel, results[0]["lim"])
+    meta = {k: v for k, v in flat.items() if not k.endswith(("_ua", "_us", "_ohm", "_pc")) or k in
+            ("i_min_ua", "i_max_ua", "t_min_us", "t_max_us", "q_max_pc")}
+    meta.update({f"ch0_{k}": flat[k] for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc")}, firmware="0.4.1")
+    with_skin = {**meta, "ch0_skin_rs_ohm": "500", "ch0_skin_beta_q16": "36045", "ch0_skin_cp_pf": "14000"}
+    res = audit(with_skin, rows)
+    assert res.checked >= 190 and not res.mismatches and not res.no_skin, res.mismatches[:3]
+    old = audit({**meta, "firmware": "0.4.0"}, rows)  # (no model in the header: the replay has none)
+    assert old.mismatches and old.no_skin
+    assert not audit(meta, rows).no_skin  # (0.4.1 and no model in the header: the device had none)
+    with pytest.raises(RecordingError, match="the skin model in the header is not valid: beta_q16=7 out of range"):
+        audit({**with_skin, "ch0_skin_beta_q16": "7"}, rows)

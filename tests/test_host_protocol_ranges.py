@@ -267,3 +267,17 @@ def test_keepalive_goes_out_every_quarter_timeout_from_the_read_loop(monkeypatch
     n = len(t.writes)
     d.read(5.0)
     assert len(t.writes) == n  # after the DISARM no more keep-alives
+
+
+def test_the_calibration_reports_skin_model_is_range_checked():
+    """Calibration bytes 52-61 (firmware 0.4.1): the skin model as set, all 0 (none) or within set_skin's ranges."""
+    b = bytearray(64)
+    b[0] = hp.REP_CAL
+    b[hp.O_CAL_MODE] = sc.MODE_FAST
+    struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, 500, 36045, 14000)
+    c = decode(bytes(b))
+    assert (c.skin_rs_ohm, c.skin_beta_q16, c.skin_cp_pf) == (500, 36045, 14000)
+    for bad in ((500, 7, 14000), (5001, 36045, 14000), (500, 36045, 99), (0, 0, 1)):
+        struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, *bad)
+        with pytest.raises(ProtocolError, match="field skin="):
+            decode(bytes(b))
