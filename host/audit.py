@@ -87,13 +87,11 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         r = _replay(rows, ctls, cals, sent)
     except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
         raise RecordingError(f"{path}: {e}") from None
-    r.no_skin = any(row["mode"] == sc.MODE_FAST and row["channel"] in ctls and not ctls[row["channel"]].skin.on
-                    and not _has_skin(meta, row["channel"]) for row in rows) and (fw is None or fw < SKIN_FIRMWARE)
+    # MODE_FAST replayed with no model where the header could not say which (firmware before 0.4.1)
+    r.no_skin = (fw is None or fw < SKIN_FIRMWARE) and any(
+        row["mode"] == sc.MODE_FAST and row["channel"] in ctls
+        and f"ch{row['channel']}_{SKIN_KEYS[0]}" not in meta and SKIN_KEYS[0] not in meta for row in rows)
     return r
-
-
-def _has_skin(meta, ch) -> bool:
-    return f"ch{ch}_skin_rs_ohm" in meta or "skin_rs_ohm" in meta
 
 
 def _skin(c, meta, prefix, path):

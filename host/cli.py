@@ -766,7 +766,7 @@ def cmd_audit(a) -> int:
         say(f"{a.file}: no pulse could be replayed: the recording has no calibration pulse and its header no Rp0")
         return 1
     if r.mismatches and r.no_skin:
-        say(f"{a.file}: its header has no skin model (recorded from firmware before 0.4.1): MODE_FAST's pulses were "
+        say(f"{a.file}: its header has no skin model (firmware before 0.4.1 does not report it): MODE_FAST's pulses were "
             "replayed without the one the device had, so they can differ (`steadytouch flash` updates the board)")
     verdict = "bit-exact" if not r.mismatches else f"{len(r.mismatches)} MISMATCH(ES)"
     say(f"{a.file}: {r.checked} pulses replayed through sensation_core: {verdict}"

@@ -808,7 +808,7 @@ def test_audit_replays_a_disarm_and_arm_in_one_frame_during_calibration():
     assert res.checked == len(tel) and res.mismatches == []
 
 
-def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports():
+def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports(tmp_path, capsys):
     """Firmware 0.4.1: GET_INFO's Calibration report carries the channel's skin model (bytes 52-61), `record`
     writes it into the header (ch<n>_skin_rs_ohm, _beta_q16, _cp_pf) and `audit` replays MODE_FAST with it.
     Before, the header had no model and a FAST run with one could not replay (the check fails without it)."""
@@ -842,3 +842,14 @@ def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports():
     assert not audit(meta, rows).no_skin  # (0.4.1 and no model in the header: the device had none)
     with pytest.raises(RecordingError, match="the skin model in the header is not valid: beta_q16=7 out of range"):
         audit({**with_skin, "ch0_skin_beta_q16": "7"}, rows)
+    # `steadytouch audit` on such a file from an older firmware says why its FAST pulses can differ
+    from steadytouch.cli import main
+    from steadytouch.record import write_recording
+
+    for m, want in ((with_skin, 0), ({**meta, "firmware": "0.4.0"}, 1)):
+        path = tmp_path / f"rec{want}.csv"
+        write_recording(path, tel, m)
+        assert main(["audit", str(path)]) == want
+    out = capsys.readouterr().out
+    assert "rec1.csv: its header has no skin model (firmware before 0.4.1 does not report it): MODE_FAST's pulses " \
+           "were replayed without the one the device had" in out and "rec0.csv: 200 pulses replayed" in out, out
