@@ -919,6 +919,11 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
+        v[_V_LC] = self.lc_set + _V_BIAS  # a new calibration starts from the model as set (a Cp a refit adapted on
+        v[_V_NI] = 0  # the skin of an earlier arm is not carried into the next: `audit` replays from the header's
+        v[_V_ACH_OK] = 0  # model, as set; review of session 25: 14 of 300 pulses of a second arm differed)
+        v[_V_RFT] = 0
+        v[_V_SNA] = 0
 
     @micropython.native
     def rp(self, ls, lc, li, lt):

@@ -853,3 +853,34 @@ def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports(tmp_path
     out = capsys.readouterr().out
     assert "rec1.csv: its header has no skin model (firmware before 0.4.1 does not report it): MODE_FAST's pulses " \
            "were replayed without the one the device had" in out and "rec0.csv: 200 pulses replayed" in out, out
+
+
+@pytest.mark.parametrize("scenario", ["gel-step", "peel"])
+def test_a_second_arm_with_the_same_model_audits_bit_exact(scenario):
+    """The header holds the skin model as set; a refit adapts its Cp during a run. A DISARM and an ARM without a
+    new SET_SKIN used to carry the adapted Cp into the second session, so its audit from the header's model
+    differed (review of session 25: gel-step 14 of 300 pulses, peel 1); a calibration now starts from the model
+    as set, in the device and in the replay alike."""
+    from steadytouch.audit import audit
+
+    reports, results, _ = run_fw(f"""
+        s, board, usb, clock = make("{scenario}", n=1)
+        assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, 500, 36045, 14000)) == 0
+        start(s, mode=sc.MODE_FAST)
+        s.run(300)
+        moved = s.chans[0].ctl.skin.lc != s.chans[0].ctl.skin.lc_set
+        assert apply(s, hp.cmd_disarm(bytearray(64), hp.CH_ALL)) == 0
+        s.run(2)
+        usb.sent.clear()
+        assert apply(s, hp.cmd_arm(bytearray(64), hp.CH_ALL)) == 0
+        s.run(300)
+        dump(usb)
+        result(lim=list(s.lim), moved=moved)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    flat, rows = _recording(tel, results[0]["lim"])
+    meta = {**flat, "firmware": "0.4.1", "skin_rs_ohm": "500", "skin_beta_q16": "36045", "skin_cp_pf": "14000"}
+    res = audit(meta, rows)
+    assert res.checked >= 290 and not res.mismatches, res.mismatches[:3]
+    if scenario == "gel-step":
+        assert results[0]["moved"]  # (the first session did adapt Cp: what the second must not inherit)
