@@ -65,12 +65,13 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
                              "cannot audit without the column sent_status")
     ctls: dict[int, sc.Controller] = {}
     cals: dict[int, tuple] = {}
+    used: set[str] = set()  # the skin model keys a calibration took
     for ch in range(4):
         if f"ch{ch}_i0_ua" in meta:
             cal = tuple(meta_int(meta, f"ch{ch}_{k}", path) for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"))
             cals[ch] = cal
             c = sc.Controller(*lim)
-            _skin(c, meta, f"ch{ch}_", path)
+            used |= _skin(c, meta, f"ch{ch}_", path)
             rp0 = int(meta.get(f"ch{ch}_rp0_ohm", "0") or 0)
             if rp0:
                 c.calibrate(cal[0], cal[1], rp0, cal[2], cal[3])
@@ -80,9 +81,13 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         for ch in range(4):
             cals[ch] = cal
             ctls[ch] = sc.Controller(*lim)
-            _skin(ctls[ch], meta, "", path)
+            used |= _skin(ctls[ch], meta, "", path)
     if not cals:
         raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
+    stray = sorted(k for k in meta if k.endswith(SKIN_KEYS) and k not in used)
+    if stray:  # (a hand-made header: a model the replay would silently leave out)
+        raise RecordingError(f"{path}: skin model key(s) {', '.join(stray)} belong to no calibration in the header "
+                             "(per channel: ch<n>_skin_* beside ch<n>_i0_ua; one for all: skin_* beside i0_ua)")
     try:
         r = _replay(rows, ctls, cals, sent)
     except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
@@ -96,14 +101,19 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
 
 def _skin(c, meta, prefix, path):
     """MODE_FAST's skin model from the header (`record`: GET_INFO's Calibration report, firmware 0.4.1 on),
-    as the device's controller had it; none in the header: none (0 0 0)."""
-    if prefix + SKIN_KEYS[0] not in meta:
-        return
-    v = [meta_int(meta, prefix + k, path) for k in SKIN_KEYS]
+    as the device's controller had it; none in the header: none (0 0 0). Returns the keys it took."""
+    keys = [prefix + k for k in SKIN_KEYS]
+    have = [k for k in keys if k in meta]
+    if not have:
+        return set()
+    if len(have) < len(keys):
+        raise RecordingError(f"{path}: the skin model in the header lacks {', '.join(k for k in keys if k not in meta)}")
+    v = [meta_int(meta, k, path) for k in keys]
     try:
         c.set_skin(*v)
     except ValueError as e:
         raise RecordingError(f"{path}: the skin model in the header is not valid: {e}") from None
+    return set(keys)
 
 
 def _replay(rows, ctls, cals, sent) -> AuditResult:

@@ -842,6 +842,11 @@ def test_audit_replays_mode_fast_with_the_skin_model_the_device_reports(tmp_path
     assert not audit(meta, rows).no_skin  # (0.4.1 and no model in the header: the device had none)
     with pytest.raises(RecordingError, match="the skin model in the header is not valid: beta_q16=7 out of range"):
         audit({**with_skin, "ch0_skin_beta_q16": "7"}, rows)
+    with pytest.raises(RecordingError, match="the skin model in the header lacks ch0_skin_rs_ohm"):
+        audit({k: v for k, v in with_skin.items() if k != "ch0_skin_rs_ohm"}, rows)
+    with pytest.raises(RecordingError, match=r"skin model key\(s\) skin_beta_q16, skin_cp_pf, skin_rs_ohm belong to "
+                                             "no calibration in the header"):  # (global keys, per-channel calibration)
+        audit({**meta, "skin_rs_ohm": "500", "skin_beta_q16": "36045", "skin_cp_pf": "14000"}, rows)
     # `steadytouch audit` on such a file from an older firmware says why its FAST pulses can differ
     from steadytouch.cli import main
     from steadytouch.record import write_recording
