@@ -121,7 +121,9 @@ _K_MC = const(30)
 _K_RPF = const(31)
 _K_ME = const(32)  # me_ua2ms (mE in uA^2 ms: uA^2 us / 1000, floored), mq_target_fc_per_ohm (mQ in fC/ohm)
 _K_MQT = const(33)
-_K_N = const(34)
+_K_LT = const(34)  # ltau_q16: log2 tau (us, Q.16) of the monitor's decay after the pulse update() is given the Rp
+_K_LTU = const(35)  # of (0: none), set before update(); update() moves it here (MODE_FAST's model reads it) and clears it
+_K_N = const(36)
 _W_BIAS = const(0x20000000)
 _RP_LO = RP_MIN_OHM  # as an object
 
@@ -260,6 +262,7 @@ class Controller:
     mode, me_ua2ms, mq_target_fc_per_ohm = word(_K_MODE), word(_K_ME), word(_K_MQT)  # (set_mode, calibrate)
     mq_last_fc_per_ohm, drift_ohm = word(_K_MQL, _W_BIAS), word(_K_DR, _W_BIAS)  # (see _K_I)
     fast_jumps, model_jumps, model_cuts = word(_K_FJ), word(_K_MJ), word(_K_MC)
+    ltau_q16 = word(_K_LT)  # the decay's log2 tau after the pulse measured (decay.ltau_q16): for the next update() only
     rp_ohm = property(lambda c: c._rp_big if c._k[_K_RPF] else c._k[_K_RPG], lambda c, x: c._rp(x))
 
     def _rp(self, x):  # rp_ohm's setter: a small int in c._k, else the int itself in c._rp_big (allocates nothing)
@@ -405,6 +408,8 @@ class Controller:
         law's constants from self._k; Rp's range is checked on the object: every int.)"""
         ka = self._k
         k = ptr32(ka)
+        k[_K_LTU] = k[_K_LT]  # the decay's tau is this update's only (a stale one never meets a later Rp)
+        k[_K_LT] = 0
         if not k[_K_I0]:  # (below: the fault rules)
             return int(self.stop(ST_UNCALIBRATED))
         rp = int(rp_ohm)  # a machine word: an int beyond it is caught by the echo through _k

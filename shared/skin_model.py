@@ -33,6 +33,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 from fast_step import ceiling_bound
 from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
+from skin_tau import anchor_tau
 
 # fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
 # array (one global lookup a _root call): _root's inline interpolations read the
@@ -94,6 +95,7 @@ _KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_cor
 _KC_T = const(23)
 _KC_ST = const(24)
 _KC_MJ = const(29)  # c.model_jumps
+_KC_LTU = const(35)  # log2 tau of the pulse just measured, Q.16, 0: none (sensation_core._K_LTU)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -167,7 +169,8 @@ _V_SNA = const(43)  # 1: the last jump saw a step of the skin on its pulse and g
 _V_SNA_I = const(44)  # that pulse's I and T
 _V_SNA_T = const(45)
 _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
-_V_N = const(47)
+_V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rule 7)
+_V_N = const(48)
 _V_BIAS = const(0x10000000)
 
 
@@ -885,6 +888,7 @@ class SkinModel:
     predicted_rp_ohm = word(_V_PRED)  # the Rp the model predicted for that jump
     ls = word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
     lc = word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
+    tau_jumps = word(_V_TJ)  # jumps anchored on the decay's tau (rule 7; counts up, saturating)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -1082,117 +1086,133 @@ class SkinModel:
         v[_V_NI] = i_k
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
-        fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
-        step = 0  # a step of the skin seen on the pulse just measured
-        bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
-        unchk = 0  # a refitted Cp not yet checked by a pulse that moved I
-        rft = v[_V_RFT]
-        v[_V_RFT] = 0
-        if jumped and p0rp > 0:
-            miss = rp_ohm - v[_V_PRED]
-            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            adl = dl if dl >= 0 else 0 - dl
-            am = miss if miss >= 0 else 0 - miss
-            big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
-            step = big
-            bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
-            if rft and adl <= _L_MOVED:
-                unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
-                # straddle a second step: review of session 18)
-            if am > (rp_ohm >> 9) and adl > _L_MOVED:
-                if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
-                    v[_V_RFT] = 1
+        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau: S and Cp from it and this Rp at once
+        if lt > 0 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+            v[_V_RFT] = 0  # (no refit, no contact hypothesis, no halving: Cp is read, not inferred)
+            v[_V_SNA] = 0
+            n = v[_V_TJ]
+            if n < _SAT30:
+                v[_V_TJ] = n + 1
+            fresh = 0
+            bigm = 0
+            unchk = 0
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
+            q16 = int(_law_q(vv, v[_V_LQK]))
+            if q16 == NOROOT:
+                return -2 if v[_V_CUT] else -1
+        else:
+            fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
+            step = 0  # a step of the skin seen on the pulse just measured
+            bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
+            unchk = 0  # a refitted Cp not yet checked by a pulse that moved I
+            rft = v[_V_RFT]
+            v[_V_RFT] = 0
+            if jumped and p0rp > 0:
+                miss = rp_ohm - v[_V_PRED]
+                dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+                adl = dl if dl >= 0 else 0 - dl
+                am = miss if miss >= 0 else 0 - miss
+                big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
+                step = big
+                bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
+                if rft and adl <= _L_MOVED:
+                    unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
+                    # straddle a second step: review of session 18)
+                if am > (rp_ohm >> 9) and adl > _L_MOVED:
+                    if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
+                        v[_V_RFT] = 1
+                    elif big:
+                        fresh = 1
                 elif big:
                     fresh = 1
-            elif big:
-                fresh = 1
-        elif p0rp > 0:
-            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            adl = dl if dl >= 0 else 0 - dl
-            dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
-            # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
-            # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
-            dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
-            if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
-                step = 1
-            elif bstep and adl > _L_MOVED:
-                # the pulse before saw the step and had no answer: the pair is on one skin, refit
-                v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
-            elif rft and adl <= _L_MOVED:
-                unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
-        if step:  # (cleared below when the jump gives an answer)
-            v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
-            v[_V_SNA_I] = i_k
-            v[_V_SNA_T] = t_k
-        lc = v[_V_LC] - _V_BIAS  # (self.lc)
-        w0 = v[_V_WORK]
-        ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
-        if ls == NOROOT:
-            return -2 if v[_V_CUT] else -1
-        v[_V_LS] = ls + _V_BIAS  # (self.ls)
-        v[_V_ACH_LS] = ls + _V_BIAS  # (kept for the next jump's pulse before)
-        v[_V_ACH_LC] = lc + _V_BIAS
-        v[_V_ACH_W] = v[_V_WORK] - w0
-        v[_V_ACH_OK] = 1
-        lq_k = v[_V_LQK]
-        q16 = int(_law_q(vv, lq_k))
-        lc_set = int(self.lc_set) if q16 == NOROOT else lc
-        if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
-            # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
-            # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
-            lc = lc_set
-            v[_V_LC] = lc + _V_BIAS  # (self.lc)
-            v[_V_ACH_OK] = 0
+            elif p0rp > 0:
+                dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+                adl = dl if dl >= 0 else 0 - dl
+                dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
+                # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
+                # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
+                dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
+                if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
+                    step = 1
+                elif bstep and adl > _L_MOVED:
+                    # the pulse before saw the step and had no answer: the pair is on one skin, refit
+                    v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
+                elif rft and adl <= _L_MOVED:
+                    unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
+            if step:  # (cleared below when the jump gives an answer)
+                v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
+                v[_V_SNA_I] = i_k
+                v[_V_SNA_T] = t_k
+            lc = v[_V_LC] - _V_BIAS  # (self.lc)
             w0 = v[_V_WORK]
-            ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
+            ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
             if ls == NOROOT:
                 return -2 if v[_V_CUT] else -1
             v[_V_LS] = ls + _V_BIAS  # (self.ls)
-            v[_V_ACH_LS] = ls + _V_BIAS
+            v[_V_ACH_LS] = ls + _V_BIAS  # (kept for the next jump's pulse before)
             v[_V_ACH_LC] = lc + _V_BIAS
             v[_V_ACH_W] = v[_V_WORK] - w0
             v[_V_ACH_OK] = 1
+            lq_k = v[_V_LQK]
             q16 = int(_law_q(vv, lq_k))
-        if q16 == NOROOT:
-            return -2 if v[_V_CUT] else -1
-        if q16 > (q_k << 4) and fresh and p0rp > 0:
-            # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
-            # charge is the smaller one; take it, the next pulse tells them apart
-            if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
-                # the last jump's anchor on that pulse at that Cp, its work charged as if it ran
-                # (its search would not have run out: the same answers as searching again)
-                ls0 = bls - _V_BIAS
-                v[_V_WORK] += bw
-            else:
-                ls0 = int(root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
-            if ls0 != NOROOT:
-                v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
-                la = int(root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
-                if la != NOROOT:
-                    ls1 = ls
-                    lc1 = lc
-                    mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
-                    ma = 0 - la if la < 0 else la
-                    mc = 0 - mb if mb < 0 else mb
-                    my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
-                    if la < 0:
-                        my = my if mb < 0 else 0 - my
-                    elif mb < 0:
-                        my = 0 - my
-                    ls = ls0 + my
-                    lc = lc1 + la
-                    v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
-                    v[_V_LC] = lc + _V_BIAS
-                    q2 = int(_law_q(vv, lq_k))
-                    if q2 != NOROOT and q2 < q16:
-                        q16 = q2
-                    else:
-                        ls = ls1
-                        lc = lc1
-                        v[_V_LS] = ls + _V_BIAS
+            lc_set = int(self.lc_set) if q16 == NOROOT else lc
+            if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
+                # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
+                # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
+                lc = lc_set
+                v[_V_LC] = lc + _V_BIAS  # (self.lc)
+                v[_V_ACH_OK] = 0
+                w0 = v[_V_WORK]
+                ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
+                if ls == NOROOT:
+                    return -2 if v[_V_CUT] else -1
+                v[_V_LS] = ls + _V_BIAS  # (self.ls)
+                v[_V_ACH_LS] = ls + _V_BIAS
+                v[_V_ACH_LC] = lc + _V_BIAS
+                v[_V_ACH_W] = v[_V_WORK] - w0
+                v[_V_ACH_OK] = 1
+                q16 = int(_law_q(vv, lq_k))
+            if q16 == NOROOT:
+                return -2 if v[_V_CUT] else -1
+            if q16 > (q_k << 4) and fresh and p0rp > 0:
+                # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
+                # charge is the smaller one; take it, the next pulse tells them apart
+                if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
+                    # the last jump's anchor on that pulse at that Cp, its work charged as if it ran
+                    # (its search would not have run out: the same answers as searching again)
+                    ls0 = bls - _V_BIAS
+                    v[_V_WORK] += bw
+                else:
+                    ls0 = int(root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
+                if ls0 != NOROOT:
+                    v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
+                    la = int(root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
+                    if la != NOROOT:
+                        ls1 = ls
+                        lc1 = lc
+                        mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
+                        ma = 0 - la if la < 0 else la
+                        mc = 0 - mb if mb < 0 else mb
+                        my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+                        if la < 0:
+                            my = my if mb < 0 else 0 - my
+                        elif mb < 0:
+                            my = 0 - my
+                        ls = ls0 + my
+                        lc = lc1 + la
+                        v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
                         v[_V_LC] = lc + _V_BIAS
-            if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
-                return -2
+                        q2 = int(_law_q(vv, lq_k))
+                        if q2 != NOROOT and q2 < q16:
+                            q16 = q2
+                        else:
+                            ls = ls1
+                            lc = lc1
+                            v[_V_LS] = ls + _V_BIAS
+                            v[_V_LC] = lc + _V_BIAS
+                if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
+                    return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base

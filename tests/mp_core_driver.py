@@ -1,14 +1,15 @@
 # Runs under MicroPython and CPython alike: reads one case per line from stdin,
 # prints the core's outputs for it. Used to prove CPython == MicroPython.
 # Case: imin imax tmin tmax qmax i0 t0 rp0 x y mode rs beta cp rp...   ("" ends;
-# rs beta cp: the skin model, 0 0 0 for none)
+# rs beta cp: the skin model, 0 0 0 for none; an rp may be rp/lt: ltau_q16 = lt told before that update)
 import sys
 
 import sensation_core as sc
 
 
 def run(line):
-    v = [int(w) for w in line.split()]
+    w = line.split()
+    v = [int(x) for x in w[:14]]
     try:
         c = sc.Controller(v[0], v[1], v[2], v[3], v[4])
         c.calibrate(v[5], v[6], v[7], v[8], v[9])
@@ -17,12 +18,16 @@ def run(line):
     except ValueError as e:
         return "E " + str(e).split("=")[0]
     out = [c.me_ua2ms, c.mq_target_fc_per_ohm, c.i_ua, c.t_us]
-    for rp in v[14:]:
-        out.append(c.update(rp))
+    for x in w[14:]:
+        rp, _, lt = x.partition("/")
+        if lt:
+            c.ltau_q16 = int(lt)
+        out.append(c.update(int(rp)))
         out.append(c.i_ua)
         out.append(c.t_us)
         out.append(c.mq_last_fc_per_ohm)
     out.append(c.model_jumps)
+    out.append(c.skin.tau_jumps)
     return " ".join([str(x) for x in out])
 
 

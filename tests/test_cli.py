@@ -36,7 +36,7 @@ def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
     p = run("record", str(out), "--device", f"sim://peel?{AUTO}&frames=100")  # real time: 2 s
     assert p.returncode == 1 and "device lost: the simulated device stopped (exit code 0)" in p.stderr  # ran to its end
     meta, rows = read_recording(out)
-    assert meta["firmware"] == "0.4.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
+    assert meta["firmware"] == "0.5.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
     # its 100 frames count from the recording's start (sim://'s scenario waits for the session): all of
     # them recorded, and the few frames it ran while the host read its metadata before
     assert 200 <= len(rows) <= 300 and {r["channel"] for r in rows} == {0, 1}  # (the few: < 50 frames)
@@ -116,7 +116,7 @@ def test_ctrl_c_during_record_leaves_a_readable_file(tmp_path):
 def test_device_commands_over_sim():
     url = "sim://steady?channels=2"
     p = run("info", "--device", url)
-    assert p.returncode == 0 and "steadytouch firmware 0.4.0 on pico-stmisola, 2 channel(s)" in p.stdout
+    assert p.returncode == 0 and "steadytouch firmware 0.5.0 on pico-stmisola, 2 channel(s)" in p.stdout
     assert "ch0: not calibrated" in p.stdout
     p = run("arm", "--device", url)
     assert p.returncode == 2 and "arm: not calibrated (send calibrate first)" in p.stderr

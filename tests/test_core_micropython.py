@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import decay
 import sensation_core as sc
 
 from conftest import ROOT, SHARED, UNDER_HEAP_LOCK, compile_mpy, run_mp
@@ -57,7 +58,8 @@ def mp_core(micropython, core_mpy_dir):
 
 def encode(lim, cal, mode, rps, skin=(0, 0, 0)):
     v = [lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc]
-    v += [cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc, mode, *skin, *rps]
+    v += [cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc, mode, *skin]
+    v += ["%d/%d" % r if isinstance(r, tuple) else r for r in rps]  # (rp, ltau_q16): the decay told first
     return " ".join(map(str, v))
 
 
@@ -78,6 +80,20 @@ def test_bit_identical_to_cpython(mp_core, cases):
 def test_bit_identical_to_cpython_with_the_skin_model(mp_core, cases):
     """MODE_FAST with a skin model (logs, exponentials and root searches in integers)."""
     for (lim, cal, rps), skin in cases:
+        line = encode(lim, cal, sc.MODE_FAST, rps, skin)
+        assert mp_core.ask(line) == mp_core_driver.run(line), line
+
+
+# the decay's log2 tau (Q.16) told before an update: none, anywhere in decay's range, or a skin's (~50 us ... 3 ms)
+LTAU = st.one_of(st.just(0), st.integers(1, decay.LTAU_END - 1), st.integers(370000, 760000))
+
+
+@settings(max_examples=EXAMPLES // 4)
+@given(st.lists(st.tuples(scenario(max_updates=16), skin_model(), st.data()), min_size=BATCH, max_size=BATCH))
+def test_bit_identical_to_cpython_with_the_decays_tau(mp_core, cases):
+    """MODE_FAST with a skin model anchored on the decay's tau (rule 7: skin_tau.anchor_tau) where one is told."""
+    for (lim, cal, rps), skin, data in cases:
+        rps = [(rp, data.draw(LTAU)) for rp in rps]
         line = encode(lim, cal, sc.MODE_FAST, rps, skin)
         assert mp_core.ask(line) == mp_core_driver.run(line), line
 
@@ -109,6 +125,8 @@ def loop(N):
         rp = 3000 + (rp * 7 + n * 131) % 120000  # wanders over the whole valid range
         if n % 997 == 0:
             rp = 250000  # faults too
+        if n % 3:  # the decay's tau told (rule 7's anchor), one update in three none
+            c.ltau_q16 = 400000 + (n * 7919) % 320000
         c.update(rp)
         sc.rp_from_vp(rp // 10, c.i_ua + 1)
         n += 1
@@ -118,7 +136,7 @@ def loop(N):
 
 def main():
     n, err = under_heap_lock(loop, 10000)
-    print("updates", n, "error", err, "model_jumps", c.model_jumps)
+    print("updates", n, "error", err, "model_jumps", c.model_jumps, "tau_jumps", c.skin.tau_jumps)
 
 
 main()
@@ -133,7 +151,8 @@ def test_update_allocates_nothing_under_heap_lock(micropython, core_mpy_dir, tmp
     r = run_mp(micropython, script, [core_mpy_dir])
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().startswith("updates 10000 error None"), r.stdout + r.stderr
-    assert int(r.stdout.split()[-1]) > 100, r.stdout  # the skin model's jumps were exercised
+    w = r.stdout.split()
+    assert int(w[-3]) > 100 and int(w[-1]) > 50, r.stdout  # the skin model's jumps, and its tau anchor, were exercised
 
 
 def test_heap_lock_harness_detects_an_allocation(micropython, core_mpy_dir, tmp_path):

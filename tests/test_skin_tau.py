@@ -125,3 +125,43 @@ def test_bit_identical_in_the_micropython_vm_and_allocation_free(micropython, co
     assert got == want
     assert sum(1 for x in want if x[0]) > 200  # most anchored: the comparison is not of refusals
     assert no_alloc and r == want[0][0] == 1
+
+
+def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000):
+    """MODE_FAST on the model's own skin (exact readings: Rp and log2 tau rounded), the fitted Cp cp_set;
+    steps: [(S ohm, Cp pF)] in turn, n pulses each. Per step the felt mQ error of each pulse (the first
+    pulse is the one read on the changed skin) and the controller."""
+    x, y = -1670, 186000
+    c = sc.Controller(100, 10000, 20, 8000, 30000000)
+    s0, cp0 = steps[0]
+    rp0 = reading(rs, beta, s0, cp0, 1000, 1000)[0]
+    c.calibrate(1000, 1000, rp0, x, y)
+    c.set_mode(sc.MODE_FAST)
+    c.set_skin(rs, beta, cp_set)
+    target = (1000 * 1000 - y) / (rp0 - x)
+    out = []
+    for s, cp in steps:
+        errs = []
+        for _ in range(n):
+            i, t = c.i_ua, c.t_us
+            rp, lt, _, _ = reading(rs, beta, s, cp, i, t)
+            errs.append((i * t - y) / (rp - x) / target - 1)
+            c.ltau_q16 = lt if tau else 0
+            c.update(rp)
+            assert c.ltau_q16 == 0  # (told for one update only)
+        out.append(errs)
+    return out, c
+
+
+def test_with_the_decays_tau_a_step_of_the_skin_is_met_on_the_next_pulse():
+    """Rule 7: the jump anchors S and Cp on the reading and its tau, so a step that changes Cp too (gel:
+    S / 3, Cp x 2.5; the fitted Cp that of the dry skin) is met by the first corrected pulse (the law on
+    the skin as it is); without tau the model's Cp is inferred and the same pulse is off by more."""
+    steps = [(30000, 14000), (10000, 35000), (30000, 14000), (16000, 9000)]
+    with_tau, c = closed_loop(steps)
+    without, c0 = closed_loop(steps, tau=False)
+    for errs in with_tau[1:]:
+        assert abs(errs[1]) < 0.004, errs[:4]  # (the pulse's rounding: 1 uA, 1 us)
+        assert max(abs(e) for e in errs[1:]) < 0.004, errs
+    assert c.skin.tau_jumps >= 3 and c0.skin.tau_jumps == 0
+    assert max(abs(e[1]) for e in without[1:]) > 0.01, [e[:4] for e in without]  # (what rule 7 changes)
