@@ -5,15 +5,13 @@ Controller._set_me) and mQ = (Q0 - y*) / (Rp0 - x*) (Eq. 2, Controller._set_mq);
 then, every pulse, the charge on the Q-Rp line Q = mQ (Rp - x*) + y* (Eq. 3,
 _line) and the pulse I = mE / Q, T = Q^2 / mE (Eq. 4, _from_q, with the
 bounds). Faults and bounds: Controller.update and _from_q; the baseline modes:
-_fixed_current (the three are functions of the Controller, also its methods).
-MODE_FAST's step is in fast_step.py, its skin model in skin_model.py, the integer
-arithmetic in fixmath.py. docs/controller.md maps every rule to its function.
+_fixed_current (the three are functions of the Controller, also its methods). MODE_FAST's step
+is in fast_step.py, its skin model in skin_model.py (and skin_tau.py), the integer arithmetic in
+fixmath.py. docs/controller.md maps every rule to its function.
 
-Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every
-intermediate value stays below 2**30 in magnitude, so a 32-bit MicroPython port
-never promotes to a heap-allocated long int, and `Controller.update` allocates
-nothing. Formats and error bounds: docs/fixed-point.md.
-
+Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every intermediate value stays
+below 2**30 in magnitude, so a 32-bit MicroPython port never promotes to a heap-allocated long int,
+and `Controller.update` allocates nothing. Formats and error bounds: docs/fixed-point.md.
 Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
 """
 
@@ -87,10 +85,9 @@ _M15 = const(0x7FFF)
 _T_SAT = const(0x8000)  # "T >= 2**15 us": beyond every t_max
 _MQ_CAP = const(0x1FFFFFFF)
 
-# the law's constants and the limits as words of one array, Controller._k (set_limits,
-# calibrate, set_mode write it and the attributes of the same name): on the chip an
-# attribute lookup costs ~2 us, a word read by viper nothing. Never negative (a 64-bit
-# viper reads a ptr32 word unsigned): x* is kept as -x*.
+# the law's constants and the limits as words of one array, Controller._k (set_limits, calibrate, set_mode
+# write it and the attributes of the same name): on the chip an attribute lookup costs ~2 us, a word read by
+# viper nothing. Never negative (a 64-bit viper reads a ptr32 word unsigned): x* is kept as -x*.
 _K_MODE = const(0)
 _K_IMIN = const(1)  # i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc
 _K_IMAX = const(2)
@@ -121,8 +118,8 @@ _K_MC = const(30)
 _K_RPF = const(31)
 _K_ME = const(32)  # me_ua2ms (mE in uA^2 ms: uA^2 us / 1000, floored), mq_target_fc_per_ohm (mQ in fC/ohm)
 _K_MQT = const(33)
-_K_LT = const(34)  # ltau_q16: log2 tau (us, Q.16) of the monitor's decay after the pulse update() is given the Rp
-_K_LTU = const(35)  # of (0: none), set before update(); update() moves it here (MODE_FAST's model reads it) and clears it
+_K_LT = const(34)  # ltau_q16 (log2 tau, decay.ltau_q16), told for the next update: it moves it to _K_LTU (rule 7)
+_K_LTU = const(35)
 _K_N = const(36)
 _W_BIAS = const(0x20000000)
 _RP_LO = RP_MIN_OHM  # as an object
@@ -261,8 +258,7 @@ class Controller:
     i_ua, t_us, status = word(_K_I), word(_K_T), word(_K_ST)  # the next pulse (the one measured, in update)
     mode, me_ua2ms, mq_target_fc_per_ohm = word(_K_MODE), word(_K_ME), word(_K_MQT)  # (set_mode, calibrate)
     mq_last_fc_per_ohm, drift_ohm = word(_K_MQL, _W_BIAS), word(_K_DR, _W_BIAS)  # (see _K_I)
-    fast_jumps, model_jumps, model_cuts = word(_K_FJ), word(_K_MJ), word(_K_MC)
-    ltau_q16 = word(_K_LT)  # the decay's log2 tau after the pulse measured (decay.ltau_q16): for the next update() only
+    fast_jumps, model_jumps, model_cuts, ltau_q16 = word(_K_FJ), word(_K_MJ), word(_K_MC), word(_K_LT)
     rp_ohm = property(lambda c: c._rp_big if c._k[_K_RPF] else c._k[_K_RPG], lambda c, x: c._rp(x))
 
     def _rp(self, x):  # rp_ohm's setter: a small int in c._k, else the int itself in c._rp_big (allocates nothing)
@@ -381,9 +377,8 @@ class Controller:
 
     @micropython.viper
     def delivered(self, i_ua, t_us, status):
-        """The pulse delivered and its status bits where not the last output (the supervisor held or capped it):
-        update() measures mQ, MODE_FAST's secant and path on them (stim._control: inline; its own status
-        misled MODE_FAST: +37 %, docs/safety.md). Past q_max: the paper's step, MODE_FAST forgets the pulses before."""
+        """The pulse delivered and its status bits where not the last output (the supervisor held or capped it): update()
+        measures mQ, MODE_FAST's secant and path on them (stim._control: inline; docs/safety.md). Past q_max: the paper's step."""
         self.i_ua = i_ua
         self.t_us = t_us
         self.status = status

@@ -72,6 +72,7 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
+_L_TAU_AGREE = const(0x4000)  # 1/4 octave: rule 7's check, the Cp tau reads at calibration against the fitted one
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -170,7 +171,9 @@ _V_SNA_I = const(44)  # that pulse's I and T
 _V_SNA_T = const(45)
 _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
 _V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rule 7)
-_V_N = const(48)
+_V_TCK = const(48)  # SkinModel.tau_ok: the decay's tau checked against the fitted Cp (rule 7): 0 not yet, 1 agrees, 2 not
+_V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
+_V_N = const(50)
 _V_BIAS = const(0x10000000)
 
 
@@ -888,7 +891,8 @@ class SkinModel:
     predicted_rp_ohm = word(_V_PRED)  # the Rp the model predicted for that jump
     ls = word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
     lc = word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
-    tau_jumps = word(_V_TJ)  # jumps anchored on the decay's tau (rule 7; counts up, saturating)
+    tau_jumps = word(_V_TJ)  # model jumps anchored on the decay's tau (rule 7; counts up, saturating)
+    tau_ok = word(_V_TCK)  # rule 7's check of tau at calibration: 0 not yet, 1 tau's Cp agrees with the fit, 2 not
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -904,6 +908,8 @@ class SkinModel:
         self.v[_V_BETA] = beta_q16
         self.v[_V_NI] = 0  # (nothing kept from a jump on other parameters)
         self.v[_V_ACH_OK] = 0
+        self.v[_V_TCK] = 0  # (tau checked again against this fit)
+        self.v[_V_TLC] = 0
         self.jumped = 0
 
     def limits(self, i_min_ua, i_max_ua, t_max_us, q_max_pc):
@@ -923,6 +929,28 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
+        v[_V_TCK] = 0  # (a new calibration: tau checked again on its skin, rule 7)
+
+    @micropython.viper
+    def check_tau(self, rp_ohm: int, lt: int, i_k: int, t_k: int) -> int:
+        """Rule 7's check (fast_step.fast_pulse, on the first update after a calibration or set_skin that
+        is told a tau): the Cp the decay reads on this pulse (skin_tau.anchor_tau; the skin is still the
+        calibration's) against the fitted Cp: within _L_TAU_AGREE (1/4 octave) tau is taken on later
+        jumps (tau_ok 1), else never until the next calibration or set_skin (2: a monitor or lead that
+        scales the decay makes the model's shape wrong, and the jumps then overshoot: review of session
+        25, tau x 2 on every pulse felt +40 %). The model's S and Cp are left as they were; returns tau_ok."""
+        v = ptr32(self.v)
+        ls = v[_V_LS]
+        lc = v[_V_LC]
+        ok = 2
+        if int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+            d = v[_V_LC] - _V_BIAS - int(self.lc_set)
+            if d >= 0 - _L_TAU_AGREE and d <= _L_TAU_AGREE:
+                ok = 1
+        v[_V_LS] = ls
+        v[_V_LC] = lc
+        v[_V_TCK] = ok
+        return ok
 
     @micropython.native
     def rp(self, ls, lc, li, lt):
@@ -1086,13 +1114,13 @@ class SkinModel:
         v[_V_NI] = i_k
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
-        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau: S and Cp from it and this Rp at once
-        if lt > 0 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (checked at calibration): S and Cp
+        tauf = 0  # from it and this Rp at once
+        if lt > 0 and v[_V_TCK] == 1 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+            tauf = 1
+            v[_V_TLC] = 1
             v[_V_RFT] = 0  # (no refit, no contact hypothesis, no halving: Cp is read, not inferred)
             v[_V_SNA] = 0
-            n = v[_V_TJ]
-            if n < _SAT30:
-                v[_V_TJ] = n + 1
             fresh = 0
             bigm = 0
             unchk = 0
@@ -1102,6 +1130,9 @@ class SkinModel:
             if q16 == NOROOT:
                 return -2 if v[_V_CUT] else -1
         else:
+            if v[_V_TLC]:  # the last tau anchor's Cp is not carried into rules 1-6: the fitted one (a bad reading
+                v[_V_LC] = int(self.lc_set) + _V_BIAS  # with its tau left Cp x 1.75 for the jumps without tau that
+                v[_V_TLC] = 0  # followed: +12.6 % felt, review of session 25)
             fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
             step = 0  # a step of the skin seen on the pulse just measured
             bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
@@ -1257,4 +1288,7 @@ class SkinModel:
         n = pk[_KC_MJ]  # (c.model_jumps)
         if n < _SAT30:
             pk[_KC_MJ] = n + 1
+        n = v[_V_TJ]  # (self.tau_jumps)
+        if tauf and n < _SAT30:
+            v[_V_TJ] = n + 1
         return st

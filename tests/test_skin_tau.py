@@ -1,8 +1,8 @@
 """skin_tau.anchor_tau: S and Cp from one reading and the monitor's decay after it
-(tau = R(I) Cp), in closed form, the next step of the tau path (docs/performance.md; not yet used
-by MODE_FAST's jump). The model it sets reads the Rp back and has the tau it was given, for skins
+(tau = R(I) Cp), in closed form: MODE_FAST's jump anchors on it when the decay's tau is told (rule 7,
+docs/controller.md). The model it sets reads the Rp back and has the tau it was given, for skins
 across the accepted parameters; its refusals; bit-identical in the MicroPython VM and allocation-free
-under the heap lock."""
+under the heap lock; and rule 7 on a closed loop."""
 
 import json
 import math
