@@ -56,7 +56,7 @@ _K_MQN = const(12)
 _K_MQD = const(13)
 _V_ON = const(33)  # words of SkinModel.v: skin_model._V_ON, _V_JUMPED
 _V_JUMPED = const(34)
-_V_TCK = const(48)  # skin_model._V_TCK: rule 7's check of tau at calibration (0: not yet)
+_V_TCK = const(48)  # skin_model._V_TCK: rule 7's calibration of tau (0: under way)
 _K_LTU = const(35)  # sensation_core._K_LTU: log2 tau told for this update (0: none)
 _NO_G = const(0x8000)  # "no estimate of the loop gain"
 _G_MAX = const(3891)  # 0.95 in Q.12: the largest G a step takes (no stable fixed point above)
@@ -147,7 +147,7 @@ def fast_pulse(c, qf: int, q_k: int, rp_ohm: int, line, from_q) -> int:
     jumped = vm[_V_JUMPED]
     vm[_V_JUMPED] = 0
     if vm[_V_TCK] == 0 and vm[_V_ON] != 0 and q_k > 0 and kb[_K_LTU] > 0:
-        model.check_tau(rp_ohm, kb[_K_LTU], i_k, t_k)  # rule 7: the first tau after a calibration, on its skin
+        model.check_tau(rp_ohm, kb[_K_LTU], i_k, t_k)  # rule 7: the first taus after a calibration, on its skin
     # on the line within the pulse's resolution (1/2 uA and 1/2 us; at the ceiling,
     # where I and T are split for the charge, 1/2 us): the paper's step
     dq = qf - (q_k << 4)  # 1/16 pC

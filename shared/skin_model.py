@@ -72,7 +72,13 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
-_L_TAU_AGREE = const(0x4000)  # 1/4 octave: rule 7's check, the Cp tau reads at calibration against the fitted one
+# rule 7's calibration of the decay's tau: the first TAU_CAL_N taus told after a calibration (or set_skin), on its
+# skin, against the tau the fitted model has there (S anchored on the reading with the fitted Cp): their mean log2
+# ratio is the monitor's tau gain, taken out of every later tau; spread over more than TAU_CAL_SPREAD or a gain
+# beyond TAU_GAIN_MAX octave: tau is not used until the next calibration (docs/controller.md, rule 7)
+TAU_CAL_N = const(8)
+TAU_CAL_SPREAD = const(0x4000)  # 1/4 octave
+TAU_GAIN_MAX = const(0x10000)  # 1 octave
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -171,9 +177,14 @@ _V_SNA_I = const(44)  # that pulse's I and T
 _V_SNA_T = const(45)
 _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
 _V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rule 7)
-_V_TCK = const(48)  # SkinModel.tau_ok: the decay's tau checked against the fitted Cp (rule 7): 0 not yet, 1 agrees, 2 not
+_V_TCK = const(48)  # SkinModel.tau_ok: rule 7's calibration of tau: 0 under way, 1 done (the gain in _V_TLK), 2 refused
 _V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
-_V_N = const(50)
+_V_TCN = const(50)  # the calibration's taus so far, the sum, least and largest of their log2 ratios (+ _V_BIAS)
+_V_TSUM = const(51)
+_V_TLO = const(52)
+_V_THI = const(53)
+_V_TLK = const(54)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the fitted model's tau), Q.16
+_V_N = const(55)
 _V_BIAS = const(0x10000000)
 
 
@@ -892,7 +903,8 @@ class SkinModel:
     ls = word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
     lc = word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
     tau_jumps = word(_V_TJ)  # model jumps anchored on the decay's tau (rule 7; counts up, saturating)
-    tau_ok = word(_V_TCK)  # rule 7's check of tau at calibration: 0 not yet, 1 tau's Cp agrees with the fit, 2 not
+    tau_ok = word(_V_TCK)  # rule 7's calibration of tau: 0 under way, 1 done, 2 refused (tau not used)
+    tau_gain_q16 = word(_V_TLK, _V_BIAS)  # log2 of the monitor's tau gain found by it (Q.16)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -908,8 +920,7 @@ class SkinModel:
         self.v[_V_BETA] = beta_q16
         self.v[_V_NI] = 0  # (nothing kept from a jump on other parameters)
         self.v[_V_ACH_OK] = 0
-        self.v[_V_TCK] = 0  # (tau checked again against this fit)
-        self.v[_V_TLC] = 0
+        self.tau_restart()  # (tau calibrated again against this fit)
         self.jumped = 0
 
     def limits(self, i_min_ua, i_max_ua, t_max_us, q_max_pc):
@@ -929,26 +940,62 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
-        v[_V_TCK] = 0  # (a new calibration: tau checked again on its skin, rule 7)
+        self.tau_restart()  # (a new calibration: tau calibrated again on its skin, rule 7)
+
+    def tau_restart(self):
+        """Rule 7's calibration of tau starts again (set, law: a new fit or a new calibration)."""
+        v = self.v
+        v[_V_TCK] = 0
+        v[_V_TCN] = 0
+        v[_V_TSUM] = _V_BIAS
+        v[_V_TLK] = _V_BIAS
+        if v[_V_TLC]:
+            v[_V_LC] = self.lc_set + _V_BIAS  # (a tau anchor's Cp is not carried over)
+            v[_V_TLC] = 0
 
     @micropython.viper
     def check_tau(self, rp_ohm: int, lt: int, i_k: int, t_k: int) -> int:
-        """Rule 7's check (fast_step.fast_pulse, on the first update after a calibration or set_skin that
-        is told a tau): the Cp the decay reads on this pulse (skin_tau.anchor_tau; the skin is still the
-        calibration's) against the fitted Cp: within _L_TAU_AGREE (1/4 octave) tau is taken on later
-        jumps (tau_ok 1), else never until the next calibration or set_skin (2: a monitor or lead that
-        scales the decay makes the model's shape wrong, and the jumps then overshoot: review of session
-        25, tau x 2 on every pulse felt +40 %). The model's S and Cp are left as they were; returns tau_ok."""
-        v = ptr32(self.v)
-        ls = v[_V_LS]
-        lc = v[_V_LC]
-        ok = 2
-        if int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
-            d = v[_V_LC] - _V_BIAS - int(self.lc_set)
-            if d >= 0 - _L_TAU_AGREE and d <= _L_TAU_AGREE:
-                ok = 1
-        v[_V_LS] = ls
-        v[_V_LC] = lc
+        """Rule 7's calibration of tau (fast_step.fast_pulse, on each update told a tau while tau_ok is 0: the
+        first after a calibration or set_skin, on its skin): the tau the fitted model has on this pulse
+        (S anchored on rp_ohm with the fitted Cp: rule 1's search; tau = R(I) Cp) against the one read (lt).
+        After TAU_CAL_N of them the mean log2 ratio is the monitor's tau gain (tau_gain_q16, taken out of every
+        later tau: a monitor's filter or a lead that scales the decay shapes the model wrong, and the jumps then
+        overshoot: review of session 25, tau x 2 on every pulse felt +40 %, x 1.2 +12 %); tau_ok 1, or 2 (tau not
+        used until the next calibration) when the ratios spread over more than TAU_CAL_SPREAD (a step of the skin,
+        a noisy decay), the gain passes TAU_GAIN_MAX or the fitted model has no anchor. Returns tau_ok."""
+        vv = self.v
+        v = ptr32(vv)
+        v[_V_PROBE + _P_LI] = i_k  # (raw: _root takes their log2 in place)
+        v[_V_PROBE + _P_LT] = t_k
+        v[_V_PROBE + _P_RP] = rp_ohm
+        v[_V_PROBE + _P_RLP] = int(log2q(rp_ohm))
+        v[_V_WORK] = 0
+        v[_V_CUT] = 0
+        lcs = int(self.lc_set)
+        ls = int(_root(vv, _K_ANCHOR + (_V_PROBE << 8) + _RAW_IT, 0, 0, lcs))
+        if ls == NOROOT:
+            v[_V_TCK] = 2
+            return 2
+        ma = v[_V_PROBE + _P_LI] - _L_1MA  # log2 R(I) = ls - mul_q16(log2 I - log2 1 mA, beta), inline
+        mc = 0 - ma if ma < 0 else ma
+        my = (((mc >> 10) * v[_V_BETA]) >> 6) + (((mc & 0x3FF) * v[_V_BETA]) >> 16)
+        d = lt - (ls - (0 - my if ma < 0 else my) + lcs - _L_1E6)  # log2 (tau read / the model's)
+        n = v[_V_TCN] + 1
+        v[_V_TCN] = n
+        v[_V_TSUM] += d
+        if n == 1 or d + _V_BIAS < v[_V_TLO]:
+            v[_V_TLO] = d + _V_BIAS
+        if n == 1 or d + _V_BIAS > v[_V_THI]:
+            v[_V_THI] = d + _V_BIAS
+        if n < TAU_CAL_N:
+            return 0
+        g = v[_V_TSUM] - _V_BIAS
+        g = (g + (TAU_CAL_N >> 1)) // TAU_CAL_N if g >= 0 else 0 - ((0 - g + (TAU_CAL_N >> 1)) // TAU_CAL_N)
+        ok = 1
+        if v[_V_THI] - v[_V_TLO] > TAU_CAL_SPREAD or g > TAU_GAIN_MAX or g < 0 - TAU_GAIN_MAX:
+            ok = 2
+            g = 0
+        v[_V_TLK] = g + _V_BIAS
         v[_V_TCK] = ok
         return ok
 
@@ -1116,6 +1163,8 @@ class SkinModel:
         v[_V_ACH_OK] = 0
         lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (checked at calibration): S and Cp
         tauf = 0  # from it and this Rp at once
+        if lt > 0 and v[_V_TCK] == 1:
+            lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)
         if lt > 0 and v[_V_TCK] == 1 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
             tauf = 1
             v[_V_TLC] = 1
