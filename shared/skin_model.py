@@ -73,9 +73,10 @@ FAST_MODEL_STEP_LOG2 = const(3)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
 # rule 7's calibration of the decay's tau: the first TAU_CAL_N taus told after a calibration (or set_skin), on its
-# skin, against the tau the fitted model has there (S anchored on the reading with the fitted Cp): their mean log2
-# ratio is the monitor's tau gain, taken out of every later tau; spread over more than TAU_CAL_SPREAD or a gain
-# beyond TAU_GAIN_MAX octave: tau is not used until the next calibration (docs/controller.md, rule 7)
+# skin, against the tau the fitted model has there (S anchored on the reading with the fitted Cp): the mean log2
+# ratio, the largest and the least left out, is the monitor's tau gain, taken out of every later tau; those left
+# spread over more than TAU_CAL_SPREAD or a gain beyond TAU_GAIN_MAX: tau is not used until the next calibration
+# (docs/controller.md, rule 7)
 TAU_CAL_N = const(8)
 TAU_CAL_SPREAD = const(0x4000)  # 1/4 octave
 TAU_GAIN_MAX = const(0x10000)  # 1 octave
@@ -179,12 +180,14 @@ _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on
 _V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rule 7)
 _V_TCK = const(48)  # SkinModel.tau_ok: rule 7's calibration of tau: 0 under way, 1 done (the gain in _V_TLK), 2 refused
 _V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
-_V_TCN = const(50)  # the calibration's taus so far, the sum, least and largest of their log2 ratios (+ _V_BIAS)
-_V_TSUM = const(51)
+_V_TCN = const(50)  # the calibration's taus so far, the sum of their log2 ratios, the two least and the two
+_V_TSUM = const(51)  # largest of them (+ _V_BIAS)
 _V_TLO = const(52)
-_V_THI = const(53)
-_V_TLK = const(54)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the fitted model's tau), Q.16
-_V_N = const(55)
+_V_TLO2 = const(53)
+_V_THI = const(54)
+_V_THI2 = const(55)
+_V_TLK = const(56)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the fitted model's tau), Q.16
+_V_N = const(57)
 _V_BIAS = const(0x10000000)
 
 
@@ -948,6 +951,8 @@ class SkinModel:
         v[_V_TCK] = 0
         v[_V_TCN] = 0
         v[_V_TSUM] = _V_BIAS
+        v[_V_TLO] = v[_V_TLO2] = _SAT30
+        v[_V_THI] = v[_V_THI2] = 0
         v[_V_TLK] = _V_BIAS
         if v[_V_TLC]:
             v[_V_LC] = self.lc_set + _V_BIAS  # (a tau anchor's Cp is not carried over)
@@ -958,11 +963,13 @@ class SkinModel:
         """Rule 7's calibration of tau (fast_step.fast_pulse, on each update told a tau while tau_ok is 0: the
         first after a calibration or set_skin, on its skin): the tau the fitted model has on this pulse
         (S anchored on rp_ohm with the fitted Cp: rule 1's search; tau = R(I) Cp) against the one read (lt).
-        After TAU_CAL_N of them the mean log2 ratio is the monitor's tau gain (tau_gain_q16, taken out of every
-        later tau: a monitor's filter or a lead that scales the decay shapes the model wrong, and the jumps then
-        overshoot: review of session 25, tau x 2 on every pulse felt +40 %, x 1.2 +12 %); tau_ok 1, or 2 (tau not
-        used until the next calibration) when the ratios spread over more than TAU_CAL_SPREAD (a step of the skin,
-        a noisy decay), the gain passes TAU_GAIN_MAX or the fitted model has no anchor. Returns tau_ok."""
+        After TAU_CAL_N of them the mean log2 ratio, the largest and the least left out (the first pulse after the
+        calibration's sweeps often reads +0.3-0.45 octave: the skin's memory), is the monitor's tau gain
+        (tau_gain_q16, taken out of every later tau: a monitor's filter or a lead that scales the decay shapes the
+        model wrong, and the jumps then overshoot: review of session 25, tau x 2 on every pulse felt +40 %, x 1.2
+        +12 %); tau_ok 1, or 2 (tau not used until the next calibration) when the ratios left spread over more than
+        TAU_CAL_SPREAD (a step of the skin, a noisy decay), the gain passes TAU_GAIN_MAX or the fitted model has
+        no anchor. Returns tau_ok."""
         vv = self.v
         v = ptr32(vv)
         v[_V_PROBE + _P_LI] = i_k  # (raw: _root takes their log2 in place)
@@ -983,16 +990,24 @@ class SkinModel:
         n = v[_V_TCN] + 1
         v[_V_TCN] = n
         v[_V_TSUM] += d
-        if n == 1 or d + _V_BIAS < v[_V_TLO]:
-            v[_V_TLO] = d + _V_BIAS
-        if n == 1 or d + _V_BIAS > v[_V_THI]:
-            v[_V_THI] = d + _V_BIAS
+        d += _V_BIAS
+        if d < v[_V_TLO]:
+            v[_V_TLO2] = v[_V_TLO]
+            v[_V_TLO] = d
+        elif d < v[_V_TLO2]:
+            v[_V_TLO2] = d
+        if d > v[_V_THI]:
+            v[_V_THI2] = v[_V_THI]
+            v[_V_THI] = d
+        elif d > v[_V_THI2]:
+            v[_V_THI2] = d
         if n < TAU_CAL_N:
             return 0
-        g = v[_V_TSUM] - _V_BIAS
-        g = (g + (TAU_CAL_N >> 1)) // TAU_CAL_N if g >= 0 else 0 - ((0 - g + (TAU_CAL_N >> 1)) // TAU_CAL_N)
+        g = v[_V_TSUM] - v[_V_TLO] - v[_V_THI] + _V_BIAS  # (the sum of the TAU_CAL_N - 2 left)
+        m = TAU_CAL_N - 2
+        g = (g + (m >> 1)) // m if g >= 0 else 0 - ((0 - g + (m >> 1)) // m)
         ok = 1
-        if v[_V_THI] - v[_V_TLO] > TAU_CAL_SPREAD or g > TAU_GAIN_MAX or g < 0 - TAU_GAIN_MAX:
+        if v[_V_THI2] - v[_V_TLO2] > TAU_CAL_SPREAD or g > TAU_GAIN_MAX or g < 0 - TAU_GAIN_MAX:
             ok = 2
             g = 0
         v[_V_TLK] = g + _V_BIAS
