@@ -1,7 +1,8 @@
 # Runs under MicroPython and CPython alike: reads one case per line from stdin,
 # prints the core's outputs for it. Used to prove CPython == MicroPython.
 # Case: imin imax tmin tmax qmax i0 t0 rp0 x y mode rs beta cp rp...   ("" ends;
-# rs beta cp: the skin model, 0 0 0 for none; an rp may be rp/lt: ltau_q16 = lt told before that update)
+# rs beta cp: the skin model, 0 0 0 for none; an rp may be rp/lt: ltau_q16 = lt told before that update;
+# a last word "T": rule 7's calibration of tau taken as done, gain 0, so random taus reach the tau jump)
 import sys
 
 import sensation_core as sc
@@ -9,12 +10,17 @@ import sensation_core as sc
 
 def run(line):
     w = line.split()
+    tau_done = w[-1] == "T"
+    if tau_done:
+        w = w[:-1]
     v = [int(x) for x in w[:14]]
     try:
         c = sc.Controller(v[0], v[1], v[2], v[3], v[4])
         c.calibrate(v[5], v[6], v[7], v[8], v[9])
         c.set_mode(v[10])
         c.set_skin(v[11], v[12], v[13])
+        if tau_done:
+            c.skin.tau_ok = 1
     except ValueError as e:
         return "E " + str(e).split("=")[0]
     out = [c.me_ua2ms, c.mq_target_fc_per_ohm, c.i_ua, c.t_us]
@@ -28,6 +34,8 @@ def run(line):
         out.append(c.mq_last_fc_per_ohm)
     out.append(c.model_jumps)
     out.append(c.skin.tau_jumps)
+    out.append(c.skin.tau_ok)
+    out.append(c.skin.tau_gain_q16)
     return " ".join([str(x) for x in out])
 
 

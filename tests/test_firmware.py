@@ -497,24 +497,26 @@ def _recording(tel, lim, cal=(1000, 1000, -1670, 186000)):
 
 def test_the_controller_reads_the_decay_and_audit_replays_it():
     """Firmware 0.5.0: MODE_FAST's skin model anchors on the decay's tau read after each pulse (rule 7:
-    stim._control tells the controller ltau_q16 before its update). On the gel step with a model whose Cp
-    is 3x off the jumps anchor on tau; `audit` replays the run bit-exact from telemetry's ltau_q16, and
-    the same rows replayed without it (firmware 0.4.0's controller read none) part from the device."""
+    stim._control tells the controller ltau_q16 before its update). On the gel step with the electrode's own
+    model the taus after the calibration agree with it (tau_ok 1) and the gel's jumps anchor on tau; `audit`
+    replays the run bit-exact from telemetry's ltau_q16, and the same rows replayed without it (firmware
+    0.4.0's controller read none) part from the device."""
     from steadytouch.audit import audit
     from steadytouch.record import RecordingError
 
     reports, results, _ = run_fw("""
         s, board, usb, clock = make("gel-step", n=1)
-        assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, 500, 36000, 150000)) == 0
+        assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, 500, 36045, 14000)) == 0
         start(s, mode=sc.MODE_FAST)
         s.run(200)
         dump(usb)
         c = s.chans[0].ctl
-        result(lim=list(s.lim), tau_jumps=c.skin.tau_jumps, jumps=c.model_jumps)
+        result(lim=list(s.lim), tau_jumps=c.skin.tau_jumps, jumps=c.model_jumps, ok=c.skin.tau_ok)
     """)
     tel = [t for t in reports if isinstance(t, Telemetry)]
     assert len(tel) == 200 and sum(1 for t in tel if t.ltau_q16) > 190
-    assert results[0]["tau_jumps"] >= 1 and results[0]["jumps"] >= results[0]["tau_jumps"], results[0]
+    assert results[0]["ok"] == 1 and results[0]["tau_jumps"] >= 1, results[0]
+    assert results[0]["jumps"] >= results[0]["tau_jumps"], results[0]
     meta, rows = _recording(tel, results[0]["lim"])
     res = audit({**meta, "firmware": "0.5.0"}, rows)
     assert res.checked >= 190 and not res.mismatches, res.mismatches[:3]
