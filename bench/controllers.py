@@ -47,6 +47,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT / "shared"), str(ROOT / "firmware"), str(ROOT)]
 import board_config as cfg  # noqa: E402
 import board_sim  # noqa: E402
+import decay  # noqa: E402
 import sensation_core as sc  # noqa: E402
 from host import skin  # noqa: E402
 from sim_electrode import Electrode  # noqa: E402
@@ -189,38 +190,47 @@ SURGES = False  # --surges: one line per surging step (study)
 PEAK = "firmware"  # stim._peak_counts; "end": the last sample before the fall, no guard; "pairmin": its strict half
 
 
-def peak_counts(buf, n, edge=None, px=0):
+def peak_counts(buf, n, edge=None, px=0, fall=False):
     """stim._peak_counts as stim._measure reads the window buf: its samples but the last px (the decay past
     stim._C_PEAK_POST_US), at most stim._C_PEAK_SAMPLES of them, of the last n (1 sample: that one): the
     larger of the largest min of two neighbouring samples and the last sample before the
     largest drop capped at its predecessor + 8 + 1/64. PEAK == "end": the sample just before
     the fall (`edge`: the window index of the first sample after it), a bound without a guard;
-    "pairmin": the pair-min part alone (the strict guard, 2-4 us early)."""
+    "pairmin": the pair-min part alone (the strict guard, 2-4 us early). fall: (that value, the
+    index of the first sample after the fall as stim._measure finds it: the latest largest drop in
+    Vp's samples, or a larger drop past them; the decay's tau is read from the sample after it)."""
     w = len(buf) - px
     lo = max(len(buf) - n, w - 32)
+    e = w  # (stim._peak_counts' edge when fewer than 2 samples)
     if w - lo <= 0:
-        return 0
-    if PEAK == "end" and edge is not None and edge - 1 >= lo:
-        return buf[edge - 1]
-    if w - lo == 1:
-        return buf[w - 1]
-    best = max(min(buf[k - 1], buf[k]) for k in range(lo + 1, w))
-    if PEAK == "pairmin":
-        return best
-    e = max(range(lo + 1, w), key=lambda k: (buf[k - 1] - buf[k], k))
-    if e - 1 > lo:
-        y = buf[e - 2]
-        best = max(best, min(buf[e - 1], y + 8 + (y >> 6)))
-    return best
+        x = 0
+    elif PEAK == "end" and edge is not None and edge - 1 >= lo:
+        x = buf[edge - 1]
+    elif w - lo == 1:
+        x = buf[w - 1]
+    else:
+        x = max(min(buf[k - 1], buf[k]) for k in range(lo + 1, w))
+        e = max(range(lo + 1, w), key=lambda k: (buf[k - 1] - buf[k], k))
+        if PEAK != "pairmin" and e - 1 > lo:
+            y = buf[e - 2]
+            x = max(x, min(buf[e - 1], y + 8 + (y >> 6)))
+    if not fall:
+        return x
+    d = buf[e - 1] - buf[e] if lo < e < w else -4096
+    for k in range(w, len(buf)):  # (a larger drop past Vp's samples: the fall, stim._measure)
+        if buf[k - 1] - buf[k] > d:
+            d, e = buf[k - 1] - buf[k], k
+    return x, e
 
 
 class Meter:
     """Rp as the firmware reads it, through the simulated board (board_sim.SimBoard,
     `real` = the realistic analog path, `ideal` = the ideal one): the DAC's code,
-    the ADC's window of samples around the fall, the firmware's peak in mV with the monitor correction
-    (`correction`, as `steadytouch selftest` stores it, applied as stim._measure does: vmon_cal.correct;
-    until session 25 the Meter took it and never applied it), Rp = Vp / I_delivered. A frame (20 ms at
-    50 Hz) passes between pulses, so the DAC settles as on the board."""
+    the ADC's window of samples around the fall, the firmware's peak in mV with the monitor
+    correction (`correction`, as `steadytouch selftest` stores it: vmon_cal.correct, as
+    stim._measure applies it), Rp = Vp / I_delivered, and the decay's log2 tau after the fall
+    (self.ltau_q16: decay.ltau_q16 from the fall stim._measure finds). A frame (20 ms at 50 Hz)
+    passes between pulses, so the DAC settles as on the board."""
 
     def __init__(self, e, board, seed=1, correction=None, adc_us=None):
         c = cfg
@@ -232,19 +242,26 @@ class Meter:
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
         cal = correction[0] if correction else None
         self.terms = vmon_cal.terms(cal[0], cal[1], cfg.VMON_UV_PER_COUNT) if cal else None
+        self.ltau_q16 = 0
 
     def pulse(self, i_ua, t_us):
-        """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse."""
+        """(delivered uA, measured Rp ohm, true uA, true Rp ohm) of one pulse; self.ltau_q16 its decay's tau."""
         b = self.b
         di = b.set_amplitude(0, i_ua)
         b.clock.advance(20000 - t_us)
         n = b.fire(0, t_us)
+        buf = b.adc[0]
         px = max(0, b.post_us - 20) // b.dt_us  # (stim._measure's _PX: the read ends 20 us past the fall)
-        x = peak_counts(b.adc[0], n, b.last_edge[0], px)
-        vpr = x * cfg.VMON_UV_PER_COUNT // 1000  # (the raw read: electrode off on it too, as the firmware)
+        x, e = peak_counts(buf, n, b.last_edge[0], px, fall=True)
+        uv = cfg.VMON_UV_PER_COUNT
+        vpr = x * uv // 1000
+        o = 0
         if self.terms:
-            x = vmon_cal.correct(x, *self.terms)
-        vp = x * cfg.VMON_UV_PER_COUNT // 1000
+            k, o = self.terms
+            x = vmon_cal.correct(x, k, o)
+        vp = x * uv // 1000
+        w = len(buf)
+        self.ltau_q16 = decay.ltau_q16(buf, e + 1, w - e - 1, o, b.dt_us) if n > 0 and e + 1 < w else 0
         rp = sc.RP_OVER if (vp >= self.vp_off or vpr >= self.vp_off) else sc.rp_from_vp(vp, di)
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 
@@ -324,6 +341,7 @@ class Supervisor:
 
 
 SUPERVISOR = False  # --supervisor: bench.run's default for `supervisor`
+TAU = True  # --no-tau: MODE_FAST's model sent without the tau gain the sweeps measured (rule 7 off)
 
 
 def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board="exact", sweeps=1,
@@ -354,14 +372,23 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
     if mode == sc.MODE_FAST:  # the skin model, fitted to the calibration's pulses
         if sweeps > 1:
             pts = skin.sweep_wide(i0, t0)
+            taus = []  # (I, T, the decay's log2 tau read) of each sweep pulse: rule 7's gain (skin.tau_gain)
             if meter:
-                sw = [[(i, t, meter.pulse(i, t)[1]) for i, t in pts] for _ in range(sweeps)]
+                sw = []
+                for _ in range(sweeps):
+                    row = []
+                    for i, t in pts:
+                        row.append((i, t, meter.pulse(i, t)[1]))
+                        taus.append((i, t, meter.ltau_q16))
+                    sw.append(row)
             else:
                 sw = [[(i, t, round(_rp_on(e, i, t) * (1 + noise * rng.normal()))) for i, t in pts]
                       for _ in range(sweeps)]
             f = skin.fit_sweeps(sw, i0, t0, LIMITS[3])
-            FIT_INFO.update(trusted=f.trusted, shape_sd=f.shape_sd, misfit=f.misfit, why=f.why)
-            c.set_skin(*f.args())
+            tg = skin.tau_gain(f.model, taus) if f.trusted and TAU else None
+            FIT_INFO.update(trusted=f.trusted, shape_sd=f.shape_sd, misfit=f.misfit, why=f.why,
+                            tau=tg.trusted if tg else False, tau_why=tg.why if tg else "")
+            c.set_skin(*f.args(), tg.q16 if tg else sc.SKIN_TAU_OFF)
         else:
             if meter:
                 pulses = [(i, t, meter.pulse(i, t)[1]) for i, t in skin.sweep(i0, t0)]
@@ -404,6 +431,7 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             rows.append((k, i, t, rp, mq, c.status))
             measured.append((k, di, t, rp, (di * t - Y) * 1000 / (rp - X) if rp < sc.RP_OVER else float("nan"), c.status))
             true_rp.append(rp_true)
+            c.ltau_q16 = meter.ltau_q16  # the decay read after the pulse, as stim._control tells the controller
             c.update(rp)
             if mode == ORACLE and c.i_ua > 0:
                 oracle_pulse(c, e, i * t)
@@ -544,11 +572,15 @@ def main():
     ap.add_argument("--supervisor", action="store_true",
                     help="the firmware's raise rule between controller and board: a raise held one pulse, "
                          "then the smaller of two proposals (firmware/stim.py; default: the controller's own pulses)")
+    ap.add_argument("--no-tau", action="store_true",
+                    help="MODE_FAST's model without the tau gain its sweeps measured (rule 7 off; default: on where "
+                         "skin.tau_gain trusts it)")
     a = ap.parse_args()
-    global PEAK, SURGES, SUPERVISOR
+    global PEAK, SURGES, SUPERVISOR, TAU
     PEAK = a.peak
     SURGES = a.surges
     SUPERVISOR = a.supervisor
+    TAU = not a.no_tau
     if a.study:
         print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise, a.seed)
         return

@@ -48,7 +48,9 @@ except ImportError:  # CPython: no heap lock
 # 0.4.0: telemetry O_SENT_STATUS (the bounds of the pulse delivered: the controller is told them),
 # FLAG_MODE_SET, O_LTAU (the monitor's decay after the fall: the capture runs 100 us past it)
 # 0.4.1: GET_INFO's Calibration report carries the channel's skin model (bytes 52-61: `audit` replays it)
-FW_VERSION = (0, 4, 1)
+# 0.5.0: the controller reads that decay (ctl.ltau_q16 before each update: MODE_FAST's model anchors on it where
+# SET_SKIN gave the monitor's tau gain, bytes 14-15; GET_INFO's Calibration report bytes 62-63 carry it)
+FW_VERSION = (0, 5, 0)
 _MAX_CMDS_PER_FRAME = const(4)
 RATE_MIN_HZ = hp.RATE_MIN_HZ
 RATE_MAX_HZ = hp.RATE_MAX_HZ
@@ -70,6 +72,7 @@ _C_K_I = const(22)  # the controller's next pulse as words of ctl._k (sensation_
 _C_K_T = const(23)  # ctl.i_ua, ctl.t_us, ctl.status are properties over them; checked below)
 _C_K_ST = const(24)
 _C_K_MQL = const(26)  # and its mQ on the pulse measured (+ _C_W_BIAS: signed)
+_C_K_LT = const(34)  # the decay's log2 tau after the pulse measured (sensation_core._K_LT: ctl.ltau_q16; checked below)
 _C_K_TMIN = const(3)  # its soft t_min, t_max (sensation_core._K_TMIN, _K_TMAX; checked below)
 _C_K_TMAX = const(4)
 _C_ST_I_BOUND = const(0x003)  # sc.ST_I_MIN | sc.ST_I_MAX
@@ -102,12 +105,12 @@ if not (hp.O_TYPE == 0 and hp.O_CH == 1 and hp.O_MODE == 2 and hp.O_STOP == 3 an
     raise ImportError("stim: telemetry layout changed; update _TEL_FMT")
 _c = sc.Controller(1, 2, 3, 4, 6)  # the controller's words as _control and the report read them
 _c.i_ua, _c.t_us, _c.status, _c.mq_last_fc_per_ohm = 11, 12, 13, -14
-_c.me_ua2ms, _c.mq_target_fc_per_ohm = 15, 16
+_c.me_ua2ms, _c.mq_target_fc_per_ohm, _c.ltau_q16 = 15, 16, 17
 _c.set_mode(sc.MODE_FAST)
-if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_TMIN, _C_K_TMAX)] != [
-        11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 3, 4]:
+if [_c._k[j] for j in (_C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, _C_K_MODE, _C_K_TMIN, _C_K_TMAX,
+                       _C_K_LT)] != [11, 12, 13, _C_W_BIAS - 14, 15, 16, sc.MODE_FAST, 3, 4, 17]:
     raise ImportError("stim: the controller's words moved; update _C_K_I, _C_K_T, _C_K_ST, _C_K_MQL, _C_K_ME, _C_K_MQT, "
-                      "_C_K_MODE, _C_K_TMIN, _C_K_TMAX, _C_W_BIAS")
+                      "_C_K_MODE, _C_K_TMIN, _C_K_TMAX, _C_K_LT, _C_W_BIAS")
 del _c
 if bytes(array("i", [1]))[0] != 1:  # _encode_telemetry packs the fields into little-endian words (as ptr32 stores them)
     raise ImportError("stim: a little-endian machine is needed (the RP2040 and the unix VM's x86/ARM are)")
@@ -746,6 +749,7 @@ class Stimulator:
             k[_C_K_I] = v[_DI]  # ctl.delivered, inline (ctl.i_ua, ctl.t_us, ctl.status): a held proposal
             k[_C_K_T] = v[_DT]  # was not what was measured, nor were its bounds
             k[_C_K_ST] = v[_DS]
+            k[_C_K_LT] = v[_LT]  # (ctl.ltau_q16: the decay read after it, MODE_FAST's model anchors on it)
             if int(ctl.update(rp)) & _C_FAULT_MASK:
                 self._latch(c, _C_STOP_RP_FAULT)
                 return
@@ -1021,6 +1025,7 @@ class Stimulator:
         hp.put_u16(b, hp.O_CAL_SKIN_RS, ctl.skin_rs_ohm)
         hp.put_i32(b, hp.O_CAL_SKIN_BETA, ctl.skin_beta_q16)
         hp.put_i32(b, hp.O_CAL_SKIN_CP, ctl.skin_cp_pf)
+        hp.put_u16(b, hp.O_CAL_SKIN_TAU, ctl.skin_tau_q16 + 0x8000)
         b[hp.O_CAL_VMON_STATE] = self.vmon_state
         hp.put_u16(b, hp.O_CAL_I0, c.i0)
         hp.put_u16(b, hp.O_CAL_T0, c.t0)
@@ -1144,6 +1149,8 @@ class Stimulator:
         rs = hp.get_u16(r, hp.O_ARG)
         beta = hp.get_i32(r, hp.O_ARG + 2)
         cp = hp.get_i32(r, hp.O_ARG + 6)
+        tau = hp.get_u16(r, hp.O_ARG + 10) - 0x8000  # rule 7's tau gain (0 on the wire: sc.SKIN_TAU_OFF; every
+        # other u16 is within +-sc.SKIN_TAU_MAX_Q16)
         k = lo
         while k < hi:
             if self.chans[k].armed:
@@ -1158,9 +1165,11 @@ class Stimulator:
                 return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 6)
             if not hp.frame_fits(self.rate_hz, self.n, self.lim[3], 1):  # the model's work must fit the frame
                 return self._ack(r, hp.RES_NO_FRAME_TIME, 0)
+        elif tau != sc.SKIN_TAU_OFF:  # a tau gain with no model: malformed
+            return self._ack(r, hp.RES_OUT_OF_RANGE, hp.O_ARG + 10)
         k = lo
         while k < hi:
-            self.chans[k].ctl.set_skin(rs, beta, cp)
+            self.chans[k].ctl.set_skin(rs, beta, cp, tau)
             k += 1
         return self._ack(r, hp.RES_OK, 0)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import decay
 import hid_protocol as hp
 import sensation_core as sc
 
@@ -16,7 +17,8 @@ from .record import RecordingError, meta_int
 AUDIT_COLUMNS = ("mode", "flags", "stop", "next_i_ua", "next_t_us")
 SENT_STATUS_FIRMWARE = (0, 4, 0)  # the first firmware that reports the status of the pulse sent (telemetry sent_status)
 SKIN_FIRMWARE = (0, 4, 1)  # the first whose `record` header holds each channel's skin model (GET_INFO's Calibration)
-SKIN_KEYS = ("skin_rs_ohm", "skin_beta_q16", "skin_cp_pf")
+SKIN_KEYS = ("skin_rs_ohm", "skin_beta_q16", "skin_cp_pf", "skin_tau_q16")  # (the last: firmware 0.5.0 on, optional)
+TAU_FIRMWARE = (0, 5, 0)  # the first whose controller reads the decay's tau (ltau_q16: 0.4.0 reported it, unused)
 
 
 def _firmware(meta: dict, path) -> tuple | None:
@@ -63,6 +65,12 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
     if fw is not None and fw >= SENT_STATUS_FIRMWARE and not sent:
         raise RecordingError(f"{path}: firmware {meta['firmware']} reports the status of each pulse sent; "
                              "cannot audit without the column sent_status")
+    # the decay's log2 tau after each pulse, told to the controller before its update: from firmware 0.5.0 on
+    # (0.4.0 reported it in telemetry but its controller did not read it: the replay tells it none)
+    tau = "ltau_q16" in rows[0] and (fw is None or fw >= TAU_FIRMWARE)
+    if fw is not None and fw >= TAU_FIRMWARE and not tau:
+        raise RecordingError(f"{path}: firmware {meta['firmware']}'s controller reads the decay after each pulse; "
+                             "cannot audit without the column ltau_q16")
     ctls: dict[int, sc.Controller] = {}
     cals: dict[int, tuple] = {}
     used: set[str] = set()  # the skin model keys a calibration took
@@ -89,7 +97,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         raise RecordingError(f"{path}: skin model key(s) {', '.join(stray)} belong to no calibration in the header "
                              "(per channel: ch<n>_skin_* beside ch<n>_i0_ua; one for all: skin_* beside i0_ua)")
     try:
-        r = _replay(rows, ctls, cals, sent)
+        r = _replay(rows, ctls, cals, sent, tau)
     except ValueError as e:  # a recorded value the core refuses (mode, limits, calibration)
         raise RecordingError(f"{path}: {e}") from None
     # MODE_FAST replayed with no model where the header could not say which (firmware before 0.4.1)
@@ -102,13 +110,20 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
 def _skin(c, meta, prefix, path):
     """MODE_FAST's skin model from the header (`record`: GET_INFO's Calibration report, firmware 0.4.1 on),
     as the device's controller had it; none in the header: none (0 0 0). Returns the keys it took."""
-    keys = [prefix + k for k in SKIN_KEYS]
+    keys = [prefix + k for k in SKIN_KEYS[:3]]
     have = [k for k in keys if k in meta]
     if not have:
         return set()
     if len(have) < len(keys):
         raise RecordingError(f"{path}: the skin model in the header lacks {', '.join(k for k in keys if k not in meta)}")
     v = [meta_int(meta, k, path) for k in keys]
+    tk = prefix + SKIN_KEYS[3]  # rule 7's tau gain (a header before firmware 0.5.0 has none: off)
+    if tk in meta:
+        keys.append(tk)
+        v.append(meta_int(meta, tk, path))
+        if not any(v[:3]) and v[3] != sc.SKIN_TAU_OFF:
+            raise RecordingError(f"{path}: {tk}={v[3]} with no skin model (a tau gain goes with a model; off: "
+                                 f"{sc.SKIN_TAU_OFF})")
     try:
         c.set_skin(*v)
     except ValueError as e:
@@ -116,7 +131,7 @@ def _skin(c, meta, prefix, path):
     return set(keys)
 
 
-def _replay(rows, ctls, cals, sent) -> AuditResult:
+def _replay(rows, ctls, cals, sent, tau) -> AuditResult:
     checked, skipped, bad = 0, 0, []
     cal_rp = dict.fromkeys(ctls, 0)  # per channel: the last calibration pulse's Rp not yet confirmed
     cal_pair = {}  # per channel: the two readings that gave Rp0 (a mode change while armed takes it again)
@@ -130,7 +145,7 @@ def _replay(rows, ctls, cals, sent) -> AuditResult:
             skipped += 1
             continue
         try:
-            done = _step(ctls[ch], r, cals[ch], cal_rp, cal_pair, ch, sent)
+            done = _step(ctls[ch], r, cals[ch], cal_rp, cal_pair, ch, sent, tau)
         except ValueError as e:
             raise ValueError(f"data row {n}: {e}") from None
         if not done:
@@ -145,7 +160,7 @@ def _replay(rows, ctls, cals, sent) -> AuditResult:
     return AuditResult(checked, bad, skipped)
 
 
-def _step(c, r, cal, cal_rp, cal_pair, ch, sent) -> bool:
+def _step(c, r, cal, cal_rp, cal_pair, ch, sent, tau) -> bool:
     """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet).
     cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none);
     cal_pair[ch]: the two readings that gave its Rp0 (the device's stim SET_MODE takes Rp0 again
@@ -189,5 +204,9 @@ def _step(c, r, cal, cal_rp, cal_pair, ch, sent) -> bool:
         if st & ~sc.ST_BOUND_MASK or st < 0:
             raise ValueError(f"sent_status={st} out of range (bits of 0x{sc.ST_BOUND_MASK:x})")
         c.delivered(r["i_ua"], r["t_us"], st)
+        lt = r["ltau_q16"] if tau else 0
+        if not 0 <= lt < decay.LTAU_END:
+            raise ValueError(f"ltau_q16={lt} out of range 0..{decay.LTAU_END - 1}")
+        c.ltau_q16 = lt  # (the device's stim._control: the decay read after the pulse, for this update)
         c.update(r["rp_ohm"])
     return True

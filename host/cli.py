@@ -257,8 +257,10 @@ def cmd_info(a) -> int:
                        if c.vmon_gain_ppm else "monitor uncorrected")
                 say(f"  ch{ch}: {mon}, {dac}")
             if c.skin_rs_ohm or c.skin_beta_q16 or c.skin_cp_pf:  # (firmware 0.4.1 on: MODE_FAST's model)
+                tau = ("tau not read" if c.skin_tau_q16 == sc.SKIN_TAU_OFF else
+                       f"tau read x {2 ** (c.skin_tau_q16 / 65536):.3f} (rule 7)")
                 say(f"  ch{ch}: skin model Rs {c.skin_rs_ohm} ohm, beta {c.skin_beta_q16 / 65536:.3f}, "
-                    f"Cp {c.skin_cp_pf} pF")
+                    f"Cp {c.skin_cp_pf} pF; {tau}")
         say(f"  correction: {VMON_STATE_WORDS.get(i.vmon_state, i.vmon_state)}")
     return 0
 
@@ -544,6 +546,8 @@ def device_meta(d: Device, url: str) -> dict:
             if i.reports_skin:  # (MODE_FAST's model: `audit` replays it; 0 0 0 none)
                 meta.update({f"ch{ch}_skin_rs_ohm": c.skin_rs_ohm, f"ch{ch}_skin_beta_q16": c.skin_beta_q16,
                              f"ch{ch}_skin_cp_pf": c.skin_cp_pf})
+            if i.reports_tau:  # (rule 7's tau gain: off or the one SET_SKIN gave)
+                meta[f"ch{ch}_skin_tau_q16"] = c.skin_tau_q16
     meta["started"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     return meta
 
@@ -895,6 +899,7 @@ def cmd_skin(a) -> int:
                 say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): {skin.RECOMMENDED_SWEEPS} are recommended, "
                     f"{f.sweeps} were given (docs/calibration.md)")
         args = f.args()
+        tau = _skin_tau(a.file, f.model) if f.trusted else sc.SKIN_TAU_OFF
     else:
         m = skin.fit(sweeps[0])
         say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
@@ -903,12 +908,33 @@ def cmd_skin(a) -> int:
             say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
         say("one sweep: its uncertainty is unknown; repeated sweeps (a `sweep` column) let the fit judge itself")
         args = m.args()
+        tau = sc.SKIN_TAU_OFF
+        if skin.load_taus(a.file) is not None:
+            say("tau not used (rule 7): its gain is measured only on repeated sweeps the model is trusted on")
     if a.send:
-        _precheck("skin", *args, _channel(a))
+        Commands().set_skin(*args, _channel(a), tau)  # (a value out of range: one line before the device is opened)
         with open_transport(a.device) as t:
-            ack = Device(t).skin(*args, ch=_channel(a))
+            ack = Device(t).skin(*args, ch=_channel(a), tau_q16=tau)
             say(f"{a.device}: {ack.words()}")
     return 0
+
+
+def _skin_tau(path, model) -> int:
+    """Rule 7's tau gain from the sweeps' ltau_q16 column (skin.tau_gain), said; sc.SKIN_TAU_OFF when the file has
+    none or it is not trusted."""
+    from . import skin
+
+    taus = skin.load_taus(path)
+    if taus is None:
+        say("no ltau_q16 column: tau not used (rule 7; `record` writes the decay's tau after each pulse)")
+        return sc.SKIN_TAU_OFF
+    g = skin.tau_gain(model, taus)
+    if not g.trusted:
+        say(f"tau not used (rule 7): {g.why}")
+        return sc.SKIN_TAU_OFF
+    say(f"tau read on {g.reads} pulses: the monitor reads it x {2 ** g.gain_oct:.3f} (spread {g.spread_oct:.3f} "
+        f"octave, slope {g.slope:.3f}); MODE_FAST's jumps anchor on it (rule 7)")
+    return g.q16
 
 
 def cmd_validate(a) -> int:

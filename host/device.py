@@ -20,6 +20,7 @@ from collections import deque
 from contextlib import contextmanager
 
 import hid_protocol as hp
+import sensation_core as sc
 
 from .protocol import COMMAND_WORDS, RESULT_WORDS, Ack, CalInfo, Commands, Info, ProtocolError, decode
 from .transport import Transport, TransportError
@@ -266,8 +267,8 @@ class Device:
                                   "(hid_protocol.frame_fits)", refused=True) from None
             raise
 
-    def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL):
-        return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch))
+    def skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL, tau_q16=sc.SKIN_TAU_OFF):
+        return self.command(self.cmds.set_skin(rs_ohm, beta_q16, cp_pf, ch, tau_q16))
 
     def set_vmon(self, ch, gain_ppm, offset_mv, store=False, dac_gain_ppm=0):
         """Channel ch's monitor correction and DAC gain, in RAM (store=False) or also in the board's flash."""

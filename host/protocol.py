@@ -179,6 +179,12 @@ class Info:
         return tuple(int(x) for x in self.firmware.split(".")) >= FW_SKIN
 
     @property
+    def reports_tau(self) -> bool:
+        """Firmware 0.5.0 on: the controller reads the decay's tau (rule 7) with the gain SET_SKIN gave, and the
+        Calibration report carries that gain (bytes 62-63; before it: 0s there, read as off)."""
+        return tuple(int(x) for x in self.firmware.split(".")) >= FW_TAU
+
+    @property
     def dac_low(self) -> bool:
         """hard_i_max_ua / hard_q_max_pc are lowered below the board's nominal limits x the DAC gain applied on
         a channel / VMON_DAC_PPM_MAX (every channel has one; INFO_FLAG_DAC_LOW; firmware before it: never set)."""
@@ -201,6 +207,7 @@ HELD_PCT = 100 - hp.VMON_DAC_PPM_MIN / 1e4  # how far the hard limits are held b
 FW_HELD_LIMITS = (0, 2, 0)  # the first firmware whose Info carries the hard limits in force (Info.reports_held_limits)
 FW_OWN_LIMITS = (0, 3, 0)  # the first released with GET_INFO page 1, the board's own limits (Device.own_limits)
 FW_SKIN = (0, 4, 1)  # the first whose Calibration report carries the channel's skin model (Info.reports_skin)
+FW_TAU = (0, 5, 0)  # the first whose SET_SKIN takes rule 7's tau gain and reports it (Info.reports_tau)
 DAC_LOW_REASON = ("its hard limits are the board's own x the lowest DAC gain measured / {:g} (the top of the gain's "
                   "window: the current delivered stays within the board's own whatever the DAC's true gain; "
                   "`steadytouch info` shows each channel's DAC gain)").format(hp.VMON_DAC_PPM_MAX / 1e6)
@@ -240,6 +247,7 @@ class CalInfo:
     skin_rs_ohm: int = 0  # MODE_FAST's skin model as set (all 0: none; firmware before 0.4.1 sends 0s)
     skin_beta_q16: int = 0
     skin_cp_pf: int = 0
+    skin_tau_q16: int = sc.SKIN_TAU_OFF  # rule 7's tau gain as set (firmware before 0.5.0 sends 0: off)
 
     @property
     def ok(self) -> bool:
@@ -331,6 +339,8 @@ def _check_cal(c: CalInfo):
                                 and sc.SKIN_CP_MIN_PF <= c.skin_cp_pf <= sc.SKIN_CP_MAX_PF), "skin",
           "%d ohm, %d, %d pF" % skin, f"0, 0, 0 or Rs 0..{sc.SKIN_RS_MAX_OHM} ohm, beta {sc.SKIN_BETA_MIN_Q16}.."
           f"{sc.SKIN_BETA_MAX_Q16} (Q.16), Cp {sc.SKIN_CP_MIN_PF}..{sc.SKIN_CP_MAX_PF} pF")
+    _need(skin != (0, 0, 0) or c.skin_tau_q16 == sc.SKIN_TAU_OFF, "skin_tau_q16", c.skin_tau_q16,
+          f"{sc.SKIN_TAU_OFF} (off) with no skin model")
 
 
 def decode(report: bytes):
@@ -394,7 +404,8 @@ def decode(report: bytes):
         c = CalInfo(seq, time_us, report[hp.O_TAG], report[hp.O_RESULT], report[hp.O_CAL_CH],
                     report[hp.O_CAL_FLAGS], i0, t0, x, y, rp0, report[hp.O_CAL_MODE], vg, vo,
                     report[hp.O_CAL_VMON_STATE], struct.unpack_from("<i", report, hp.O_CAL_DAC_GAIN)[0],
-                    *struct.unpack_from("<HII", report, hp.O_CAL_SKIN_RS))
+                    *struct.unpack_from("<HII", report, hp.O_CAL_SKIN_RS),
+                    struct.unpack_from("<H", report, hp.O_CAL_SKIN_TAU)[0] - 0x8000)
         _check_cal(c)
         return c
     raise ProtocolError(f"report field type=0x{typ:02x} unknown (accepted: 0x01 telemetry, 0x02 ack, 0x03 info, 0x04 calibration)")
@@ -489,13 +500,20 @@ def check_limits(i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc):
     return i_min, i_max, t_min, t_max, q_max
 
 
-def check_skin(rs_ohm, beta_q16, cp_pf):
+def check_skin(rs_ohm, beta_q16, cp_pf, tau_q16=sc.SKIN_TAU_OFF):
+    """The model and rule 7's tau gain (sc.SKIN_TAU_OFF: tau not used): (rs, beta, cp, tau), checked."""
     rs, beta, cp = _whole("rs_ohm", rs_ohm), _whole("beta_q16", beta_q16), _whole("cp_pf", cp_pf)
+    tau = _whole("tau_q16", tau_q16)
     if rs == beta == cp == 0:
-        return rs, beta, cp  # removes the model
+        if tau != sc.SKIN_TAU_OFF:
+            raise CommandError(f"tau_q16={tau} with no skin model: a tau gain goes with a model (off: "
+                               f"{sc.SKIN_TAU_OFF})")
+        return rs, beta, cp, tau  # removes the model
+    if tau != sc.SKIN_TAU_OFF:
+        _in("tau_q16", tau, -sc.SKIN_TAU_MAX_Q16, sc.SKIN_TAU_MAX_Q16, f"(log2 Q.16; off: {sc.SKIN_TAU_OFF})")
     return (_in("rs_ohm", rs, 0, sc.SKIN_RS_MAX_OHM, "ohm"),
             _in("beta_q16", beta, sc.SKIN_BETA_MIN_Q16, sc.SKIN_BETA_MAX_Q16, "(Q.16)"),
-            _in("cp_pf", cp, sc.SKIN_CP_MIN_PF, sc.SKIN_CP_MAX_PF, "pF"))
+            _in("cp_pf", cp, sc.SKIN_CP_MIN_PF, sc.SKIN_CP_MAX_PF, "pF"), tau)
 
 
 def check_mode(mode, rate_hz):
@@ -618,15 +636,16 @@ class Commands:
                 self._fits(self.frame[1], v[3], "t_max")
         return bytes(hp.cmd_set_limits(bytearray(64), *v, self._next()))
 
-    def set_skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL) -> bytes:
-        """MODE_FAST's skin model (host/skin.py fits it); (0, 0, 0) removes it."""
+    def set_skin(self, rs_ohm, beta_q16, cp_pf, ch=hp.CH_ALL, tau_q16=sc.SKIN_TAU_OFF) -> bytes:
+        """MODE_FAST's skin model (host/skin.py fits it); (0, 0, 0) removes it. tau_q16: the monitor's tau gain
+        measured with it (skin.tau_gain; firmware 0.5.0 on), sc.SKIN_TAU_OFF: rule 7 does not read tau."""
         ch = self._ch(ch)
-        v = (rs_ohm, beta_q16, cp_pf)
+        v = (rs_ohm, beta_q16, cp_pf, tau_q16)
         if self.check:
             v = check_skin(*v)
-            if any(v) and self.frame is not None:
+            if any(v[:3]) and self.frame is not None:
                 self._fits(self.frame[1], self.frame[2], "skin", 1)
-        return bytes(hp.cmd_set_skin(bytearray(64), ch, *v, self._next()))
+        return bytes(hp.cmd_set_skin(bytearray(64), ch, *v[:3], self._next(), v[3]))
 
     def set_mode(self, mode, rate_hz=0) -> bytes:
         if self.check:

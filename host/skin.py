@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+import decay
 import sensation_core as sc
 
 SWEEP_T_US = tuple(range(200, 701, 50))  # the paper's Exp. 1 durations
@@ -173,6 +174,66 @@ def fit_sweeps(sweeps, i0_ua: int, t0_us: int, t_max_us: int = 8000) -> SweepFit
     return SweepFit(m, len(sweeps), sd, m.worst_misfit, not why, why)
 
 
+# ---- rule 7: the monitor's tau gain, measured on the same sweeps ----
+# After each pulse the monitor's decay gives tau = R(I) Cp (telemetry's ltau_q16: log2 tau in us, Q.16; 0 none).
+# MODE_FAST's jump may anchor S and Cp on it (docs/controller.md, rule 7) only if the monitor reads it true: a filter
+# or a lead that scales the decay makes the jumps overshoot (x 2: +40 % felt). The sweeps the model is fitted to are
+# on the same skin at the same time, so the fitted model's tau on each sweep pulse is what a true monitor reads: the
+# median log2 (tau read / the model's) is the monitor's gain (sent with the model, taken out of every tau), the
+# slope of log tau read on log tau model tells a scale (1) from an offset (a lead's +50 us: below 1), and their
+# spread how well the decay is read. Past any bound, tau is not used (the model still is).
+TAU_MIN_READS = 20  # taus read on the sweeps (and at least half of their pulses)
+TAU_SPREAD_MAX = 0.15  # octave: the interquartile range of the log2 ratios
+TAU_SLOPE = (0.97, 1.04)  # log tau read on log tau model: a scale keeps 1, an additive error flattens it
+TAU_SPAN_MIN = 0.5  # octave of the model's tau the sweeps must span to tell a slope
+
+
+@dataclass
+class TauGain:
+    """The monitor's tau gain measured on the calibration sweeps (tau_gain): q16 is what set_skin takes
+    (log2 gain, Q.16), sc.SKIN_TAU_OFF when tau is not to be used (why says why)."""
+
+    q16: int
+    reads: int
+    gain_oct: float
+    spread_oct: float
+    slope: float
+    trusted: bool
+    why: str
+
+
+def tau_gain(m: SkinModel, taus) -> TauGain:
+    """taus: (i_ua, t_us, ltau_q16) of every sweep pulse (ltau_q16 0: no tau read); m: the model fitted to
+    those sweeps."""
+    a = np.asarray([(i, t, lt) for i, t, lt in taus], float).reshape(-1, 3)
+    ok = a[:, 2] > 0
+    n = int(ok.sum())
+    if n < TAU_MIN_READS or 2 * n < len(a):
+        return TauGain(sc.SKIN_TAU_OFF, n, math.nan, math.nan, math.nan, False,
+                       f"tau was read on {n} of {len(a)} sweep pulses (need {TAU_MIN_READS} and half)")
+    i, lt = a[ok, 0], a[ok, 2] / 65536.0
+    lm = np.log2(m.s_ohm * (i / 1000.0) ** (-m.beta) * m.cp_pf / 1e6)  # the model's tau (us), log2
+    d = lt - lm
+    g = float(np.median(d))
+    q1, q3 = np.percentile(d, [25, 75])
+    spread = float(q3 - q1)
+    span = float(lm.max() - lm.min())
+    slope = float(np.polyfit(lm, lt, 1)[0]) if span > 0 else math.nan
+    q16 = round(g * 65536)
+    why = ""
+    if abs(q16) > sc.SKIN_TAU_MAX_Q16:
+        why = f"the monitor reads tau x {2 ** g:.2f} (limit x {2 ** (-sc.SKIN_TAU_MAX_Q16 / 65536):.2f}..x " \
+              f"{2 ** (sc.SKIN_TAU_MAX_Q16 / 65536):.2f}): check its filter and leads"
+    elif spread > TAU_SPREAD_MAX:
+        why = f"tau's reads spread over {spread:.2f} octave (limit {TAU_SPREAD_MAX})"
+    elif span < TAU_SPAN_MIN:
+        why = f"the sweeps span {span:.2f} octave of tau (need {TAU_SPAN_MIN}: sweep_wide's durations)"
+    elif not TAU_SLOPE[0] <= slope <= TAU_SLOPE[1]:
+        why = f"tau read follows the model's with slope {slope:.3f} (accepted {TAU_SLOPE[0]}..{TAU_SLOPE[1]}: " \
+              "an offset in the decay, not a gain)"
+    return TauGain(sc.SKIN_TAU_OFF if why else q16, n, g, spread, slope, not why, why)
+
+
 WIDE_T_US = (100, 150, 200, 300, 400, 500, 700, 1000, 1500, 2000, 3000)
 
 
@@ -181,6 +242,32 @@ def sweep_wide(i0_ua: int, t0_us: int, t_max_us: int = 8000) -> list[tuple[int, 
     Cp and Rs are told apart (MODE_FAST extrapolates to where a step takes the pulse)."""
     me = i0_ua * i0_ua * t0_us
     return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in WIDE_T_US if t != t0_us and t <= t_max_us]
+
+
+def load_taus(path) -> list[tuple[float, float, int]] | None:
+    """(i_ua, t_us, ltau_q16) of every row of a sweeps CSV with an `ltau_q16` column (as `record` writes it:
+    the decay's log2 tau after each pulse, Q.16; 0: none read), for tau_gain; None without that column."""
+    from .files import csv_rows, read_text_file
+
+    rows = load(path)
+    table = csv_rows(path, read_text_file(path, "CSV file"))
+    head = [h.strip() for h in table[0]]
+    if "ltau_q16" not in head:
+        return None
+    j = head.index("ltau_q16")
+    out = []
+    body = [(n, r) for n, r in enumerate(table[1:], start=2) if any(c.strip() for c in r)]
+    for (n, r), (i, t, _) in zip(body, rows):
+        v = r[j].strip() if j < len(r) else ""
+        try:
+            lt = int(v)
+        except ValueError:
+            raise SkinFitError(f"{path} row {n}: column ltau_q16 is not a whole number: {v!r}") from None
+        if not 0 <= lt < decay.LTAU_END:
+            raise SkinFitError(f"{path} row {n}: column ltau_q16 = {lt} out of range 0..{decay.LTAU_END - 1} "
+                               "(log2 tau in us, Q.16; 0: none)")
+        out.append((i, t, lt))
+    return out
 
 
 def load_sweeps(path) -> list[list[tuple[float, float, float]]]:

@@ -282,6 +282,8 @@ O_CAL_DAC_GAIN = const(48)  # i32 ppm applied to this channel's amplitude DAC (0
 O_CAL_SKIN_RS = const(52)  # MODE_FAST's skin model as set (SET_SKIN; all 0: none), firmware 0.4.1 on: u16 Rs (ohm),
 O_CAL_SKIN_BETA = const(54)  # u32 beta (Q.16),
 O_CAL_SKIN_CP = const(58)  # u32 Cp (pF)
+O_CAL_SKIN_TAU = const(62)  # u16 rule 7's tau gain as set (SET_SKIN byte 14: log2, Q.16, + 0x8000; 0: tau not used),
+# firmware 0.5.0 on (IN reports carry no CRC)
 CAL_FLAG_VMON = const(0x08)
 CAL_FLAG_DAC = const(0x10)
 # OUT
@@ -423,11 +425,13 @@ def cmd_set_mode(b, mode, rate_hz=0, tag=0):
     return b
 
 
-def cmd_set_skin(b, ch, rs_ohm, beta_q16, cp_pf, tag=0):
+def cmd_set_skin(b, ch, rs_ohm, beta_q16, cp_pf, tag=0, tau_q16=-0x8000):
+    """tau_q16: the monitor's tau gain (log2, Q.16) measured with the model, -0x8000 (sc.SKIN_TAU_OFF): none."""
     _cmd(b, CMD_SET_SKIN, ch, tag)
     put_u16(b, O_ARG, rs_ohm)
     put_i32(b, O_ARG + 2, beta_q16)
     put_i32(b, O_ARG + 6, cp_pf)
+    put_u16(b, O_ARG + 10, tau_q16 + 0x8000)
     seal(b)
     return b
 

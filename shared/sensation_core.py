@@ -5,15 +5,13 @@ Controller._set_me) and mQ = (Q0 - y*) / (Rp0 - x*) (Eq. 2, Controller._set_mq);
 then, every pulse, the charge on the Q-Rp line Q = mQ (Rp - x*) + y* (Eq. 3,
 _line) and the pulse I = mE / Q, T = Q^2 / mE (Eq. 4, _from_q, with the
 bounds). Faults and bounds: Controller.update and _from_q; the baseline modes:
-_fixed_current (the three are functions of the Controller, also its methods).
-MODE_FAST's step is in fast_step.py, its skin model in skin_model.py, the integer
-arithmetic in fixmath.py. docs/controller.md maps every rule to its function.
+_fixed_current (the three are functions of the Controller, also its methods). MODE_FAST's step
+is in fast_step.py, its skin model in skin_model.py (and skin_tau.py), the integer arithmetic in
+fixmath.py. docs/controller.md maps every rule to its function.
 
-Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every
-intermediate value stays below 2**30 in magnitude, so a 32-bit MicroPython port
-never promotes to a heap-allocated long int, and `Controller.update` allocates
-nothing. Formats and error bounds: docs/fixed-point.md.
-
+Runs unchanged on CPython >= 3.10 and MicroPython >= 1.23 (RP2040). Every intermediate value stays
+below 2**30 in magnitude, so a 32-bit MicroPython port never promotes to a heap-allocated long int,
+and `Controller.update` allocates nothing. Formats and error bounds: docs/fixed-point.md.
 Units: current uA, duration us, resistance ohm, charge pC (= uA*us), voltage mV.
 """
 
@@ -37,14 +35,8 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 from fast_step import FAST_ELASTICITY_Q12, Pulse, fast_pulse  # noqa: F401  (FAST_*: the public API)
 from fixmath import div2, div_small, isqrt_round, log2q, muldiv, rp_from_vp, word  # noqa: F401 (rp_from_vp: the API)
 from skin_model import (  # noqa: F401  (SKIN_*, FAST_MODEL_*: the public API)
-    FAST_MODEL_WORK_MAX,
-    FAST_MODEL_RAISE_LOG2,
-    SKIN_BETA_MAX_Q16,
-    SKIN_BETA_MIN_Q16,
-    SKIN_CP_MAX_PF,
-    SKIN_CP_MIN_PF,
-    SKIN_RS_MAX_OHM,
-    SkinModel,
+    FAST_MODEL_RAISE_LOG2, FAST_MODEL_WORK_MAX, SKIN_BETA_MAX_Q16, SKIN_BETA_MIN_Q16, SKIN_CP_MAX_PF, SKIN_CP_MIN_PF,
+    SKIN_RS_MAX_OHM, SKIN_TAU_MAX_Q16, SKIN_TAU_OFF, SkinModel,
 )
 
 VERSION = "0.1.0"
@@ -87,10 +79,9 @@ _M15 = const(0x7FFF)
 _T_SAT = const(0x8000)  # "T >= 2**15 us": beyond every t_max
 _MQ_CAP = const(0x1FFFFFFF)
 
-# the law's constants and the limits as words of one array, Controller._k (set_limits,
-# calibrate, set_mode write it and the attributes of the same name): on the chip an
-# attribute lookup costs ~2 us, a word read by viper nothing. Never negative (a 64-bit
-# viper reads a ptr32 word unsigned): x* is kept as -x*.
+# the law's constants and the limits as words of one array, Controller._k (set_limits, calibrate, set_mode
+# write it and the attributes of the same name): on the chip an attribute lookup costs ~2 us, a word read by
+# viper nothing. Never negative (a 64-bit viper reads a ptr32 word unsigned): x* is kept as -x*.
 _K_MODE = const(0)
 _K_IMIN = const(1)  # i_min_ua, i_max_ua, t_min_us, t_max_us, q_max_pc
 _K_IMAX = const(2)
@@ -121,7 +112,9 @@ _K_MC = const(30)
 _K_RPF = const(31)
 _K_ME = const(32)  # me_ua2ms (mE in uA^2 ms: uA^2 us / 1000, floored), mq_target_fc_per_ohm (mQ in fC/ohm)
 _K_MQT = const(33)
-_K_N = const(34)
+_K_LT = const(34)  # ltau_q16 (log2 tau, decay.ltau_q16), told for the next update: it moves it to _K_LTU (rule 7)
+_K_LTU = const(35)
+_K_N = const(36)
 _W_BIAS = const(0x20000000)
 _RP_LO = RP_MIN_OHM  # as an object
 
@@ -149,7 +142,7 @@ def _fixed_current(c, mode: int, rp_ohm: int) -> int:
         t = (t + 1) >> 1  # rounded
     elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
         dr = rp_ohm - k[_K_RP0]
-        x = int(muldiv(k[_K_MQN], dr if dr >= 0 else -dr, k[_K_MQD], 1, _MQ_CAP))  # 2 mQ |dRp| in pC
+        x = int(muldiv(k[_K_MQN], dr if dr >= 0 else 0 - dr, k[_K_MQD], 1, _MQ_CAP))  # 2 mQ |dRp| in pC
         x = (x + (k[_K_I0] >> 1)) // k[_K_I0]
         t = t0 + x if dr >= 0 else t0 - x
     i = k[_K_I0]
@@ -259,8 +252,9 @@ class Controller:
     i_ua, t_us, status = word(_K_I), word(_K_T), word(_K_ST)  # the next pulse (the one measured, in update)
     mode, me_ua2ms, mq_target_fc_per_ohm = word(_K_MODE), word(_K_ME), word(_K_MQT)  # (set_mode, calibrate)
     mq_last_fc_per_ohm, drift_ohm = word(_K_MQL, _W_BIAS), word(_K_DR, _W_BIAS)  # (see _K_I)
-    fast_jumps, model_jumps, model_cuts = word(_K_FJ), word(_K_MJ), word(_K_MC)
+    fast_jumps, model_jumps, model_cuts, ltau_q16 = word(_K_FJ), word(_K_MJ), word(_K_MC), word(_K_LT)
     rp_ohm = property(lambda c: c._rp_big if c._k[_K_RPF] else c._k[_K_RPG], lambda c, x: c._rp(x))
+    skin_tau_q16 = property(lambda c: c.skin.tau_gain_q16 if c.skin.tau_ok else SKIN_TAU_OFF)  # (set_skin's tau_q16)
 
     def _rp(self, x):  # rp_ohm's setter: a small int in c._k, else the int itself in c._rp_big (allocates nothing)
         big = 0 if -0x3FFFFFFF <= x <= 0x3FFFFFFF else 1
@@ -362,25 +356,26 @@ class Controller:
             self._forget()
         self.mode = mode
 
-    def set_skin(self, rs_ohm, beta_q16, cp_pf):
-        """MODE_FAST's electrode model (skin_model.py): series resistance Rs (ohm),
-        current exponent beta (Q.16) and capacitance Cp (pF) of the pair, as fitted to
-        the calibration pulses (host/skin.py). All three 0: no model. ValueError
-        (nothing changed) when out of range."""
+    def set_skin(self, rs_ohm, beta_q16, cp_pf, tau_q16=SKIN_TAU_OFF):
+        """MODE_FAST's electrode model (skin_model.py): series resistance Rs (ohm), current exponent beta (Q.16) and
+        capacitance Cp (pF) of the pair, as fitted to the calibration pulses (host/skin.py), and the monitor's tau
+        gain measured on them (log2 tau read / the skin's, Q.16; SKIN_TAU_OFF: rule 7 does not read tau). All three
+        0: no model (tau off). ValueError (nothing changed) when out of range."""
         if rs_ohm != 0 or beta_q16 != 0 or cp_pf != 0:
             _check("rs_ohm", rs_ohm, 0, SKIN_RS_MAX_OHM)
             _check("beta_q16", beta_q16, SKIN_BETA_MIN_Q16, SKIN_BETA_MAX_Q16)
             _check("cp_pf", cp_pf, SKIN_CP_MIN_PF, SKIN_CP_MAX_PF)
+            if tau_q16 != SKIN_TAU_OFF:
+                _check("tau_q16", tau_q16, -SKIN_TAU_MAX_Q16, SKIN_TAU_MAX_Q16)
         self.skin.set(rs_ohm, beta_q16, cp_pf)
-        self.skin_rs_ohm = rs_ohm
-        self.skin_beta_q16 = beta_q16
-        self.skin_cp_pf = cp_pf
+        if tau_q16 != SKIN_TAU_OFF and (rs_ohm or beta_q16 or cp_pf):
+            self.skin.set_tau(1, tau_q16)
+        self.skin_rs_ohm, self.skin_beta_q16, self.skin_cp_pf = rs_ohm, beta_q16, cp_pf
 
     @micropython.viper
     def delivered(self, i_ua, t_us, status):
-        """The pulse delivered and its status bits where not the last output (the supervisor held or capped it):
-        update() measures mQ, MODE_FAST's secant and path on them (stim._control: inline; its own status
-        misled MODE_FAST: +37 %, docs/safety.md). Past q_max: the paper's step, MODE_FAST forgets the pulses before."""
+        """The pulse delivered and its status bits where not the last output (the supervisor held or capped it): update()
+        measures mQ, MODE_FAST's secant and path on them (stim._control: inline; docs/safety.md). Past q_max: the paper's step."""
         self.i_ua = i_ua
         self.t_us = t_us
         self.status = status
@@ -405,6 +400,8 @@ class Controller:
         law's constants from self._k; Rp's range is checked on the object: every int.)"""
         ka = self._k
         k = ptr32(ka)
+        k[_K_LTU] = k[_K_LT]  # the decay's tau is this update's only (a stale one never meets a later Rp)
+        k[_K_LT] = 0
         if not k[_K_I0]:  # (below: the fault rules)
             return int(self.stop(ST_UNCALIBRATED))
         rp = int(rp_ohm)  # a machine word: an int beyond it is caught by the echo through _k

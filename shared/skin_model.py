@@ -33,6 +33,7 @@ except ImportError:  # CPython: the decorator does nothing, ptr32 indexes the ar
 
 from fast_step import ceiling_bound
 from fixmath import _EXP_TAB, _LOG_TAB, log2q, word
+from skin_tau import anchor_tau
 
 # fixmath's 2**x and log2 tables (k = 0..63) with their first and second differences, one
 # array (one global lookup a _root call): _root's inline interpolations read the
@@ -71,6 +72,11 @@ FAST_MODEL_STEP_LOG2 = const(3)
 # rule 3). The same bound holds for the refit on a pulse marked as a step (rule 4)
 FAST_MODEL_CP_ABOVE = const(0x400)
 _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
+# rule 7's tau gain: log2 (tau the monitor reads / the skin's R(I) Cp), measured by the host on the calibration
+# sweeps the model is fitted to (host/skin.py: tau_gain) and sent with it (Controller.set_skin); past it, or none
+# sent, tau is not used (docs/controller.md, rule 7)
+SKIN_TAU_MAX_Q16 = const(0x7FFF)  # |gain| just under 1/2 octave (Q.16): SET_SKIN carries it as a u16 + 0x8000
+SKIN_TAU_OFF = const(-0x8000)  # "no tau gain": rule 7 does not read tau (0 on the wire)
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -94,6 +100,7 @@ _KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_cor
 _KC_T = const(23)
 _KC_ST = const(24)
 _KC_MJ = const(29)  # c.model_jumps
+_KC_LTU = const(35)  # log2 tau of the pulse just measured, Q.16, 0: none (sensation_core._K_LTU)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
 _L_E = const(94548)  # log2(e)
@@ -167,7 +174,11 @@ _V_SNA = const(43)  # 1: the last jump saw a step of the skin on its pulse and g
 _V_SNA_I = const(44)  # that pulse's I and T
 _V_SNA_T = const(45)
 _V_RFT = const(46)  # 1: the last jump's Cp came from a two-pulse refit taken on its pulse
-_V_N = const(47)
+_V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rule 7)
+_V_TCK = const(48)  # SkinModel.tau_ok: 1: rule 7 reads tau (the host measured its gain, _V_TLK), 0: not
+_V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
+_V_TLK = const(50)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the skin's tau), Q.16, as set
+_V_N = const(51)
 _V_BIAS = const(0x10000000)
 
 
@@ -266,9 +277,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         w = m >> 8
         a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
         ma = v[pb + _P_LI] - _L_1MA
-        mc = -ma if ma < 0 else ma
+        mc = 0 - ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-        a += -my if ma < 0 else my
+        a += 0 - my if ma < 0 else my
         b = a + 0x40000
     # one search's set-up of the model's evaluation: what x does not change, read and
     # computed once (bit for bit the sums and products the evaluation made each time).
@@ -327,9 +338,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     else:
         n = ob if kind == _K_TWO else pb  # the pulse whose I and T the model reads
         ma = v[n + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-        mc = -ma if ma < 0 else ma
+        mc = 0 - ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-        hmy = -my if ma < 0 else my
+        hmy = 0 - my if ma < 0 else my
         hrl = v[n + _P_RLP]
         if kind == _K_PEEL:  # ls = log2 S of pulse o + mul_q16(x, beta - 1), lc = log2 Cp + x
             hls = v[ob + _P_LS] - _V_BIAS
@@ -337,13 +348,13 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             hmb = beta - 0x10000
             hsg = 1 if hmb < 0 else 0
             if hmb < 0:
-                hmb = -hmb
+                hmb = 0 - hmb
         elif kind == _K_TWO:  # lc and ls from pulse p's reading
             hq = v[ob + _P_LT] + _L_1E6
             ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-            mc = -ma if ma < 0 else ma
+            mc = 0 - ma if ma < 0 else ma
             my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-            h2m = -my if ma < 0 else my
+            h2m = 0 - my if ma < 0 else my
             h2t = v[pb + _P_LT] + _L_1E6 + 0x100000 - _L_LN2
             h2r = rs - v[pb + _P_RP]
         else:  # _K_ANCHOR, _K_RP: ls = x, lc = lc0
@@ -379,7 +390,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         if hk == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
             ma = hli - x  # lr = log2 R(I) = ls - mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
             if ma < 0:
-                ma = -ma
+                ma = 0 - ma
                 lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
             else:
                 lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
@@ -390,21 +401,21 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         elif hk == _K_CEIL:  # x = log2 I at t_max
             ma = x - hli  # lr as _K_LAW's (hli: log2 1 mA)
             if ma < 0:
-                ma = -ma
+                ma = 0 - ma
                 lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
             else:
                 lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
             lq = hq
         elif hk == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
             if x < 0:  # my = mul_q16(x, beta - 1), inline (hmb: |beta - 1|, hsg: 1 if beta < 1)
-                ma = -x
+                ma = 0 - x
                 my = (((ma >> 10) * hmb) >> 6) + (((ma & 0x3FF) * hmb) >> 16)
                 if hsg == 0:
-                    my = -my
+                    my = 0 - my
             else:
                 my = (((x >> 10) * hmb) >> 6) + (((x & 0x3FF) * hmb) >> 16)
                 if hsg != 0:
-                    my = -my
+                    my = 0 - my
             lr = hls + my - hmy
             lq = hq - x
         else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
@@ -722,8 +733,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             break
         it += 1
         w = b - a
-        num = fa if fa > 0 else -fa
-        den = num + (fb if fb > 0 else -fb)
+        num = fa if fa > 0 else 0 - fa
+        den = num + (fb if fb > 0 else 0 - fb)
         while den >= 0x40000:
             den >>= 1
             num >>= 1
@@ -743,7 +754,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             x = b - 1
         if it == 1 and x0 > a and x0 < b:  # the caller's guess first
             x = x0
-    if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+    if (fa if fa > 0 else 0 - fa) <= (fb if fb > 0 else 0 - fb):
         return a
     return b
 
@@ -885,6 +896,9 @@ class SkinModel:
     predicted_rp_ohm = word(_V_PRED)  # the Rp the model predicted for that jump
     ls = word(_V_LS, _V_BIAS)  # log2 S, anchored on the last jump
     lc = word(_V_LC, _V_BIAS)  # log2 Cp now (the two-pulse refit or the contact hypothesis may move it)
+    tau_jumps = word(_V_TJ)  # model jumps anchored on the decay's tau (rule 7; counts up, saturating)
+    tau_ok = word(_V_TCK)  # 1: rule 7 reads tau (set with its gain), 0: tau not used
+    tau_gain_q16 = word(_V_TLK, _V_BIAS)  # log2 of the monitor's tau gain as set (Q.16)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -900,6 +914,7 @@ class SkinModel:
         self.v[_V_BETA] = beta_q16
         self.v[_V_NI] = 0  # (nothing kept from a jump on other parameters)
         self.v[_V_ACH_OK] = 0
+        self.set_tau(0, 0)  # (tau's gain comes with this fit's sweeps, or tau is not used)
         self.jumped = 0
 
     def limits(self, i_min_ua, i_max_ua, t_max_us, q_max_pc):
@@ -919,11 +934,23 @@ class SkinModel:
         v[_V_XS] = -c.x_star_ohm
         v[_V_MQD] = c._mq_den_ohm
         v[_V_LCAP] = c._line_cap_q4
-        v[_V_LC] = self.lc_set + _V_BIAS  # a new calibration starts from the model as set (a Cp a refit adapted on
-        v[_V_NI] = 0  # the skin of an earlier arm is not carried into the next: `audit` replays from the header's
-        v[_V_ACH_OK] = 0  # model, as set; review of session 25: 14 of 300 pulses of a second arm differed)
+        v[_V_LC] = self.lc_set + _V_BIAS  # a new calibration starts from the model as set (a Cp a refit or a tau
+        v[_V_NI] = 0  # anchor adapted on the skin of an earlier arm is not carried into the next: `audit` replays from
+        v[_V_ACH_OK] = 0  # the header's model, as set; review of session 25: 14 of 300 pulses of a second arm differed)
         v[_V_RFT] = 0
         v[_V_SNA] = 0
+        v[_V_TLC] = 0
+
+    def set_tau(self, ok, gain_q16):
+        """Rule 7: ok 1: the jump reads the decay's tau, gain_q16 (log2 of the monitor's tau over the skin's, as
+        the host measured it on this fit's sweeps; |gain| <= SKIN_TAU_MAX_Q16) taken out of it; ok 0: tau not used.
+        (Controller.set_skin has checked them.)"""
+        v = self.v
+        v[_V_TCK] = 1 if ok else 0
+        v[_V_TLK] = (gain_q16 if ok else 0) + _V_BIAS
+        if v[_V_TLC]:
+            v[_V_LC] = self.lc_set + _V_BIAS  # (a tau anchor's Cp is not carried over)
+            v[_V_TLC] = 0
 
     @micropython.native
     def rp(self, ls, lc, li, lt):
@@ -1087,117 +1114,138 @@ class SkinModel:
         v[_V_NI] = i_k
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
-        fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
-        step = 0  # a step of the skin seen on the pulse just measured
-        bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
-        unchk = 0  # a refitted Cp not yet checked by a pulse that moved I
-        rft = v[_V_RFT]
-        v[_V_RFT] = 0
-        if jumped and p0rp > 0:
-            miss = rp_ohm - v[_V_PRED]
-            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            adl = dl if dl >= 0 else 0 - dl
-            am = miss if miss >= 0 else 0 - miss
-            big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
-            step = big
-            bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
-            if rft and adl <= _L_MOVED:
-                unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
-                # straddle a second step: review of session 18)
-            if am > (rp_ohm >> 9) and adl > _L_MOVED:
-                if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
-                    v[_V_RFT] = 1
+        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (checked at calibration): S and Cp
+        tauf = 0  # from it and this Rp at once
+        if lt > 0 and v[_V_TCK] == 1:
+            lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)
+        if lt > 0 and v[_V_TCK] == 1 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+            tauf = 1
+            v[_V_TLC] = 1
+            v[_V_RFT] = 0  # (no refit, no contact hypothesis, no halving: Cp is read, not inferred)
+            v[_V_SNA] = 0
+            fresh = 0
+            bigm = 0
+            unchk = 0
+            ls = v[_V_LS] - _V_BIAS
+            lc = v[_V_LC] - _V_BIAS
+            q16 = int(_law_q(vv, v[_V_LQK]))
+            if q16 == NOROOT:
+                return -2 if v[_V_CUT] else -1
+        else:
+            if v[_V_TLC]:  # the last tau anchor's Cp is not carried into rules 1-6: the fitted one (a bad reading
+                v[_V_LC] = int(self.lc_set) + _V_BIAS  # with its tau left Cp x 1.75 for the jumps without tau that
+                v[_V_TLC] = 0  # followed: +12.6 % felt, review of session 25)
+            fresh = 1 if jumped == 0 else 0  # rules 3 and 6: the model not checked on this skin
+            step = 0  # a step of the skin seen on the pulse just measured
+            bigm = 0  # a model checked by a refit missed by more than Rp/2**FAST_MODEL_STEP_LOG2 (rule 6)
+            unchk = 0  # a refitted Cp not yet checked by a pulse that moved I
+            rft = v[_V_RFT]
+            v[_V_RFT] = 0
+            if jumped and p0rp > 0:
+                miss = rp_ohm - v[_V_PRED]
+                dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+                adl = dl if dl >= 0 else 0 - dl
+                am = miss if miss >= 0 else 0 - miss
+                big = 1 if am > (rp_ohm >> FAST_MODEL_STEP_LOG2) else 0
+                step = big
+                bigm = big & rft  # (a miss after a contact hypothesis is what the refit is for: rule 3)
+                if rft and adl <= _L_MOVED:
+                    unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
+                    # straddle a second step: review of session 18)
+                if am > (rp_ohm >> 9) and adl > _L_MOVED:
+                    if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
+                        v[_V_RFT] = 1
+                    elif big:
+                        fresh = 1
                 elif big:
                     fresh = 1
-            elif big:
-                fresh = 1
-        elif p0rp > 0:
-            dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
-            adl = dl if dl >= 0 else 0 - dl
-            dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
-            # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
-            # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
-            dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
-            if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
-                step = 1
-            elif bstep and adl > _L_MOVED:
-                # the pulse before saw the step and had no answer: the pair is on one skin, refit
-                v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
-            elif rft and adl <= _L_MOVED:
-                unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
-        if step:  # (cleared below when the jump gives an answer)
-            v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
-            v[_V_SNA_I] = i_k
-            v[_V_SNA_T] = t_k
-        lc = v[_V_LC] - _V_BIAS  # (self.lc)
-        w0 = v[_V_WORK]
-        ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
-        if ls == NOROOT:
-            return -2 if v[_V_CUT] else -1
-        v[_V_LS] = ls + _V_BIAS  # (self.ls)
-        v[_V_ACH_LS] = ls + _V_BIAS  # (kept for the next jump's pulse before)
-        v[_V_ACH_LC] = lc + _V_BIAS
-        v[_V_ACH_W] = v[_V_WORK] - w0
-        v[_V_ACH_OK] = 1
-        lq_k = v[_V_LQK]
-        q16 = int(_law_q(vv, lq_k))
-        lc_set = int(self.lc_set) if q16 == NOROOT else lc
-        if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
-            # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
-            # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
-            lc = lc_set
-            v[_V_LC] = lc + _V_BIAS  # (self.lc)
-            v[_V_ACH_OK] = 0
+            elif p0rp > 0:
+                dl = v[_V_NOW + _P_LI] - v[_V_BEFORE + _P_LI]
+                adl = dl if dl >= 0 else 0 - dl
+                dt = v[_V_NOW + _P_LT] - v[_V_BEFORE + _P_LT]
+                # on one skin log Rp moves by at most |log I| + |log T| between two pulses (the current
+                # exponent beta < 1; d ln Rp / d ln T <= 1): by more than that and 1/8, the skin stepped
+                dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
+                if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
+                    step = 1
+                elif bstep and adl > _L_MOVED:
+                    # the pulse before saw the step and had no answer: the pair is on one skin, refit
+                    v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
+                elif rft and adl <= _L_MOVED:
+                    unchk = 1  # (as above: the last call's refit, its jump unanswered, not yet checked)
+            if step:  # (cleared below when the jump gives an answer)
+                v[_V_SNA] = 1  # (not rp_ohm: the drift's prediction, where the pulse before keeps the reading)
+                v[_V_SNA_I] = i_k
+                v[_V_SNA_T] = t_k
+            lc = v[_V_LC] - _V_BIAS  # (self.lc)
             w0 = v[_V_WORK]
-            ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
+            ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))  # anchor S on the pulse just measured
             if ls == NOROOT:
                 return -2 if v[_V_CUT] else -1
             v[_V_LS] = ls + _V_BIAS  # (self.ls)
-            v[_V_ACH_LS] = ls + _V_BIAS
+            v[_V_ACH_LS] = ls + _V_BIAS  # (kept for the next jump's pulse before)
             v[_V_ACH_LC] = lc + _V_BIAS
             v[_V_ACH_W] = v[_V_WORK] - w0
             v[_V_ACH_OK] = 1
+            lq_k = v[_V_LQK]
             q16 = int(_law_q(vv, lq_k))
-        if q16 == NOROOT:
-            return -2 if v[_V_CUT] else -1
-        if q16 > (q_k << 4) and fresh and p0rp > 0:
-            # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
-            # charge is the smaller one; take it, the next pulse tells them apart
-            if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
-                # the last jump's anchor on that pulse at that Cp, its work charged as if it ran
-                # (its search would not have run out: the same answers as searching again)
-                ls0 = bls - _V_BIAS
-                v[_V_WORK] += bw
-            else:
-                ls0 = int(root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
-            if ls0 != NOROOT:
-                v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
-                la = int(root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
-                if la != NOROOT:
-                    ls1 = ls
-                    lc1 = lc
-                    mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
-                    ma = 0 - la if la < 0 else la
-                    mc = 0 - mb if mb < 0 else mb
-                    my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
-                    if la < 0:
-                        my = my if mb < 0 else 0 - my
-                    elif mb < 0:
-                        my = 0 - my
-                    ls = ls0 + my
-                    lc = lc1 + la
-                    v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
-                    v[_V_LC] = lc + _V_BIAS
-                    q2 = int(_law_q(vv, lq_k))
-                    if q2 != NOROOT and q2 < q16:
-                        q16 = q2
-                    else:
-                        ls = ls1
-                        lc = lc1
-                        v[_V_LS] = ls + _V_BIAS
+            lc_set = int(self.lc_set) if q16 == NOROOT else lc
+            if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
+                # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
+                # passes 1): the fitted Cp back, S anchored anew, the law once more (docs/controller.md, rule 4)
+                lc = lc_set
+                v[_V_LC] = lc + _V_BIAS  # (self.lc)
+                v[_V_ACH_OK] = 0
+                w0 = v[_V_WORK]
+                ls = int(root(vv, _K_ANCHOR + (_V_NOW << 8), 0, 0, lc))
+                if ls == NOROOT:
+                    return -2 if v[_V_CUT] else -1
+                v[_V_LS] = ls + _V_BIAS  # (self.ls)
+                v[_V_ACH_LS] = ls + _V_BIAS
+                v[_V_ACH_LC] = lc + _V_BIAS
+                v[_V_ACH_W] = v[_V_WORK] - w0
+                v[_V_ACH_OK] = 1
+                q16 = int(_law_q(vv, lq_k))
+            if q16 == NOROOT:
+                return -2 if v[_V_CUT] else -1
+            if q16 > (q_k << 4) and fresh and p0rp > 0:
+                # a fresh rise: hydration (S alone) or contact (S and Cp)? The contact's
+                # charge is the smaller one; take it, the next pulse tells them apart
+                if bhit and blc == lc + _V_BIAS and v[_V_WORK] + bw <= FAST_MODEL_WORK_MAX:
+                    # the last jump's anchor on that pulse at that Cp, its work charged as if it ran
+                    # (its search would not have run out: the same answers as searching again)
+                    ls0 = bls - _V_BIAS
+                    v[_V_WORK] += bw
+                else:
+                    ls0 = int(root(vv, _K_ANCHOR + (_V_BEFORE << 8), 0, 0, lc))  # and on the one before
+                if ls0 != NOROOT:
+                    v[_V_BEFORE + _P_LS] = ls0 + _V_BIAS
+                    la = int(root(vv, _K_PEEL + (_V_NOW << 8) + (_V_BEFORE << 16), -0x30000, 0x10000, 0))
+                    if la != NOROOT:
+                        ls1 = ls
+                        lc1 = lc
+                        mb = v[_V_BETA] - 0x10000  # ls0 + mul_q16(la, beta - 1), inline
+                        ma = 0 - la if la < 0 else la
+                        mc = 0 - mb if mb < 0 else mb
+                        my = (((ma >> 10) * mc) >> 6) + (((ma & 0x3FF) * mc) >> 16)
+                        if la < 0:
+                            my = my if mb < 0 else 0 - my
+                        elif mb < 0:
+                            my = 0 - my
+                        ls = ls0 + my
+                        lc = lc1 + la
+                        v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
                         v[_V_LC] = lc + _V_BIAS
-            if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
-                return -2
+                        q2 = int(_law_q(vv, lq_k))
+                        if q2 != NOROOT and q2 < q16:
+                            q16 = q2
+                        else:
+                            ls = ls1
+                            lc = lc1
+                            v[_V_LS] = ls + _V_BIAS
+                            v[_V_LC] = lc + _V_BIAS
+                if v[_V_CUT]:  # the contact's charge is unknown: not the hydration's either
+                    return -2
         # the paper's direction only, and a rise of at most FAST_MODEL_RAISE paper steps
         base = q_k << 4
         step = qf - base
@@ -1242,4 +1290,7 @@ class SkinModel:
         n = pk[_KC_MJ]  # (c.model_jumps)
         if n < _SAT30:
             pk[_KC_MJ] = n + 1
+        n = v[_V_TJ]  # (self.tau_jumps)
+        if tauf and n < _SAT30:
+            v[_V_TJ] = n + 1
         return st

@@ -1,13 +1,12 @@
-"""skin_tau: the skin model anchored on the monitor's decay after the fall (the next step of the
-tau path, docs/performance.md; not yet used by MODE_FAST's jump).
+"""skin_tau: the skin model anchored on the monitor's decay after the fall (MODE_FAST's jump, rule 7
+of docs/controller.md, when the controller is told the decay's tau: Controller.ltau_q16).
 
 With tau = R(I) Cp read after a pulse (decay.ltau_q16) and that pulse's Rp, the model's S and Cp
 follow in closed form: Rp = Rs + R(I) (1 - exp(-T / tau)), so R(I) = (Rp - Rs) / z,
 z = 1 - exp(-T / tau); log2 S = log2 R(I) + beta (log2 I - log2 1 mA), log2 Cp = log2 tau +
-log2 1e6 - log2 R(I). A module of its own until the jump calls it: on the chip a module not
-imported costs nothing at boot (in skin_model this one viper function lengthened the boot enough
-that tests/chip/test_chip_vmon.py's 1.5 s of emulated time ended before its second store's ack;
-2.5 s passed: the boot's time, not the watchdog). Integer, allocation-free.
+log2 1e6 - log2 R(I). A module of its own (skin_model imports it): in skin_model this one viper
+function lengthened the chip's boot (session 24: tests/chip/test_chip_vmon.py's 1.5 s of emulated time
+ended before its second store's ack; 2.5 s passed). Integer, allocation-free.
 """
 
 try:

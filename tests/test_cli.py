@@ -36,7 +36,7 @@ def test_record_over_sim_then_audit_is_bit_exact(tmp_path):
     p = run("record", str(out), "--device", f"sim://peel?{AUTO}&frames=100")  # real time: 2 s
     assert p.returncode == 1 and "device lost: the simulated device stopped (exit code 0)" in p.stderr  # ran to its end
     meta, rows = read_recording(out)
-    assert meta["firmware"] == "0.4.1" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
+    assert meta["firmware"] == "0.5.0" and meta["ch0_i0_ua"] == "1000" and meta["ch1_y_star_pc"] == "186000"
     assert (meta["ch0_skin_rs_ohm"], meta["ch0_skin_beta_q16"], meta["ch0_skin_cp_pf"]) == ("0", "0", "0")  # (none set)
     # its 100 frames count from the recording's start (sim://'s scenario waits for the session): all of
     # them recorded, and the few frames it ran while the host read its metadata before
@@ -117,7 +117,7 @@ def test_ctrl_c_during_record_leaves_a_readable_file(tmp_path):
 def test_device_commands_over_sim():
     url = "sim://steady?channels=2"
     p = run("info", "--device", url)
-    assert p.returncode == 0 and "steadytouch firmware 0.4.1 on pico-stmisola, 2 channel(s)" in p.stdout
+    assert p.returncode == 0 and "steadytouch firmware 0.5.0 on pico-stmisola, 2 channel(s)" in p.stdout
     assert "ch0: not calibrated" in p.stdout
     p = run("arm", "--device", url)
     assert p.returncode == 2 and "arm: not calibrated (send calibrate first)" in p.stderr
@@ -241,5 +241,10 @@ def test_info_shows_a_channels_skin_model(monkeypatch, capsys):
         assert Device(t).skin(500, 36045, 14000, ch=1).ok
         monkeypatch.setattr(cli, "open_transport", lambda u: contextlib.nullcontext(t))
         assert cli.main(["info", "--device", url]) == 0
+        out = capsys.readouterr().out
+        assert "ch1: skin model Rs 500 ohm, beta 0.550, Cp 14000 pF; tau not read" in out, out
+        assert "ch0: skin model" not in out, out
+        assert Device(t).skin(500, 36045, 14000, ch=1, tau_q16=-5000).ok  # (firmware 0.5.0: rule 7's gain)
+        assert cli.main(["info", "--device", url]) == 0
     out = capsys.readouterr().out
-    assert "ch1: skin model Rs 500 ohm, beta 0.550, Cp 14000 pF" in out and "ch0: skin model" not in out, out
+    assert "ch1: skin model Rs 500 ohm, beta 0.550, Cp 14000 pF; tau read x 0.948 (rule 7)" in out, out

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import decay
 import sensation_core as sc
 
 from conftest import ROOT, SHARED, UNDER_HEAP_LOCK, compile_mpy, run_mp
@@ -57,7 +58,8 @@ def mp_core(micropython, core_mpy_dir):
 
 def encode(lim, cal, mode, rps, skin=(0, 0, 0)):
     v = [lim.i_min_ua, lim.i_max_ua, lim.t_min_us, lim.t_max_us, lim.q_max_pc]
-    v += [cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc, mode, *skin, *rps]
+    v += [cal.i0_ua, cal.t0_us, cal.rp0_ohm, cal.x_star_ohm, cal.y_star_pc, mode, *skin]
+    v += ["%d/%d" % r if isinstance(r, tuple) else r for r in rps]  # (rp, ltau_q16): the decay told first
     return " ".join(map(str, v))
 
 
@@ -82,6 +84,21 @@ def test_bit_identical_to_cpython_with_the_skin_model(mp_core, cases):
         assert mp_core.ask(line) == mp_core_driver.run(line), line
 
 
+# the decay's log2 tau (Q.16) told before an update: none, anywhere in decay's range, or a skin's (~50 us ... 3 ms)
+LTAU = st.one_of(st.just(0), st.integers(1, decay.LTAU_END - 1), st.integers(370000, 760000))
+
+
+@settings(max_examples=EXAMPLES // 4)
+@given(st.lists(st.tuples(scenario(max_updates=16), skin_model(), st.data()), min_size=BATCH, max_size=BATCH))
+def test_bit_identical_to_cpython_with_the_decays_tau(mp_core, cases):
+    """MODE_FAST with a skin model anchored on the decay's tau (rule 7: skin_tau.anchor_tau) where one is told."""
+    for (lim, cal, rps), skin, data in cases:
+        rps = [(rp, data.draw(LTAU)) for rp in rps]
+        g = data.draw(st.one_of(st.just(None), st.integers(-sc.SKIN_TAU_MAX_Q16, sc.SKIN_TAU_MAX_Q16)))
+        line = encode(lim, cal, sc.MODE_FAST, rps, skin) + ("" if g is None else f" T{g}")
+        assert mp_core.ask(line) == mp_core_driver.run(line), line
+
+
 def test_rejections_are_identical(mp_core):
     bad = "100 1000 50 2000 1000000 50 1000 20000 -1000 0 4 0 0 0 20000"  # i0 below i_min
     assert mp_core.ask(bad) == mp_core_driver.run(bad) == "E i0_ua"
@@ -103,12 +120,14 @@ def loop(N):
             c.set_mode(sc.MODES[(n // 500) % len(sc.MODES)])  # every mode, in turn
         if n % 1000 == 0:  # MODE_FAST with and without the skin model
             if n % 2000:
-                c.set_skin(500, 36045, 14000)
+                c.set_skin(500, 36045, 14000, 0)  # (with rule 7's tau gain: the random taus reach the tau jump)
             else:
                 c.set_skin(0, 0, 0)
         rp = 3000 + (rp * 7 + n * 131) % 120000  # wanders over the whole valid range
         if n % 997 == 0:
             rp = 250000  # faults too
+        if n % 3:  # the decay's tau told (rule 7's anchor), one update in three none
+            c.ltau_q16 = 400000 + (n * 7919) % 320000
         c.update(rp)
         sc.rp_from_vp(rp // 10, c.i_ua + 1)
         n += 1
@@ -118,7 +137,7 @@ def loop(N):
 
 def main():
     n, err = under_heap_lock(loop, 10000)
-    print("updates", n, "error", err, "model_jumps", c.model_jumps)
+    print("updates", n, "error", err, "model_jumps", c.model_jumps, "tau_jumps", c.skin.tau_jumps)
 
 
 main()
@@ -133,7 +152,8 @@ def test_update_allocates_nothing_under_heap_lock(micropython, core_mpy_dir, tmp
     r = run_mp(micropython, script, [core_mpy_dir])
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().startswith("updates 10000 error None"), r.stdout + r.stderr
-    assert int(r.stdout.split()[-1]) > 100, r.stdout  # the skin model's jumps were exercised
+    w = r.stdout.split()
+    assert int(w[-3]) > 100 and int(w[-1]) > 50, r.stdout  # the skin model's jumps, and its tau anchor, were exercised
 
 
 def test_heap_lock_harness_detects_an_allocation(micropython, core_mpy_dir, tmp_path):

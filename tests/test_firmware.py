@@ -5,6 +5,7 @@ import statistics
 
 import pytest
 
+import decay
 import hid_protocol as hp
 import sensation_core as sc
 from steadytouch.protocol import Telemetry
@@ -489,9 +490,56 @@ def _recording(tel, lim, cal=(1000, 1000, -1670, 186000)):
             **{k: str(v) for k, v in zip(("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"), cal)}}
     rows = [{"seq": t.seq, "channel": t.channel, "i_ua": t.i_ua, "t_us": t.t_us, "rp_ohm": t.rp_ohm,
              "mode": t.mode, "flags": t.flags, "stop": t.stop, "next_i_ua": t.next_i_ua, "next_t_us": t.next_t_us,
-             "sent_status": t.sent_status}
+             "sent_status": t.sent_status, "ltau_q16": t.ltau_q16}
             for t in tel]
     return meta, rows
+
+
+def test_the_controller_reads_the_decay_and_audit_replays_it():
+    """Firmware 0.5.0: MODE_FAST's skin model anchors on the decay's tau read after each pulse (rule 7:
+    stim._control tells the controller ltau_q16 before its update) where SET_SKIN gave the monitor's tau gain
+    (bytes 14-15; the simulated board's decay is true: gain 0). On the gel step with the electrode's own model
+    the gel's jumps anchor on tau; `audit` replays the run bit-exact from telemetry's ltau_q16 and the header's
+    gain, and the same rows replayed without it (firmware 0.4.0's controller read none) part from the device."""
+    from steadytouch.audit import audit
+    from steadytouch.protocol import CalInfo
+    from steadytouch.record import RecordingError
+
+    reports, results, _ = run_fw("""
+        s, board, usb, clock = make("gel-step", n=1)
+        assert apply(s, hp.cmd_set_skin(bytearray(64), hp.CH_ALL, 500, 36045, 14000, tau_q16=0)) == 0
+        start(s, mode=sc.MODE_FAST)
+        s.run(199)
+        command(s, hp.cmd_get_info(bytearray(64), 0, 0))  # (GET_INFO's Calibration report: the gain as set)
+        s.run(1)
+        dump(usb)
+        c = s.chans[0].ctl
+        result(lim=list(s.lim), tau_jumps=c.skin.tau_jumps, jumps=c.model_jumps, ok=c.skin.tau_ok)
+    """)
+    tel = [t for t in reports if isinstance(t, Telemetry)]
+    cal = [r for r in reports if isinstance(r, CalInfo)]
+    assert len(tel) == 200 and sum(1 for t in tel if t.ltau_q16) > 190
+    assert len(cal) == 1 and cal[0].skin_tau_q16 == 0 and cal[0].skin_cp_pf == 14000
+    assert results[0]["ok"] == 1 and results[0]["tau_jumps"] >= 1, results[0]
+    assert results[0]["jumps"] >= results[0]["tau_jumps"], results[0]
+    meta, rows = _recording(tel, results[0]["lim"])
+    meta.update(skin_rs_ohm="500", skin_beta_q16="36045", skin_cp_pf="14000", skin_tau_q16="0")
+    res = audit({**meta, "firmware": "0.5.0"}, rows)
+    assert res.checked >= 190 and not res.mismatches, res.mismatches[:3]
+    assert audit({**meta, "firmware": "0.4.0"}, rows).mismatches  # (the check can fail: tau changed the run)
+    off = audit({**meta, "firmware": "0.5.0", "skin_tau_q16": str(sc.SKIN_TAU_OFF)}, rows)
+    assert off.mismatches  # (the header's gain is what the replay reads: off, the taus change nothing)
+    with pytest.raises(RecordingError, match="skin_tau_q16=0 with no skin model"):
+        audit({**meta, "skin_rs_ohm": "0", "skin_beta_q16": "0", "skin_cp_pf": "0"}, rows)
+    with pytest.raises(RecordingError, match=r"skin model key\(s\) skin_tau_q16 belong to no calibration"):
+        audit({k: v for k, v in meta.items() if k not in ("skin_rs_ohm", "skin_beta_q16", "skin_cp_pf")}, rows)
+    without = [{k: v for k, v in r.items() if k != "ltau_q16"} for r in rows]
+    with pytest.raises(RecordingError, match="firmware 0.5.0's controller reads the decay after each pulse; "
+                                             "cannot audit without the column ltau_q16"):
+        audit({**meta, "firmware": "0.5.0"}, without)
+    bad = [dict(r, ltau_q16=decay.LTAU_END if k == 50 else r["ltau_q16"]) for k, r in enumerate(rows)]
+    with pytest.raises(RecordingError, match=r"data row 51: ltau_q16=1310720 out of range 0\.\.1310719"):
+        audit(meta, bad)
 
 
 @pytest.mark.parametrize("mode", [sc.MODE_AKHTAR, sc.MODE_CONSTANT_ENERGY, sc.MODE_FAST])

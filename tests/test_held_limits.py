@@ -373,7 +373,7 @@ def test_the_firmware_version_tells_a_board_that_reports_the_held_limits_from_an
 
     with open_transport("sim://steady?channels=1") as t:
         i = Device(t).info()
-    assert i.firmware == "0.4.1" and i.reports_held_limits and i.held
+    assert i.firmware == "0.5.0" and i.reports_held_limits and i.held
     old = dataclasses.replace(i, firmware="0.1.0", flags=i.flags & ~hp.INFO_FLAG_HELD)
     assert not old.reports_held_limits and not dataclasses.replace(i, firmware="0.1.9").reports_held_limits
     assert dataclasses.replace(i, firmware="1.0.0").reports_held_limits
@@ -531,7 +531,7 @@ def test_own_limits_is_none_when_a_board_refuses_page_1_and_info_says_which_firm
         d = Device(_RefusingPage(t))
         assert d.own_limits() is None
         i = d.info()
-        assert i.held and i.nominal is None and i.firmware == "0.4.1" and FW_OWN_LIMITS == (0, 3, 0)
+        assert i.held and i.nominal is None and i.firmware == "0.5.0" and FW_OWN_LIMITS == (0, 3, 0)
 
     @contextlib.contextmanager
     def refusing(u):
@@ -541,5 +541,5 @@ def test_own_limits_is_none_when_a_board_refuses_page_1_and_info_says_which_firm
     monkeypatch.setattr(cli, "open_transport", refusing)
     assert cli.main(["info", "--device", url]) == 0
     out = capsys.readouterr().out
-    assert "firmware 0.4.1 does not report the board's own limits beside the lowered ones (GET_INFO page 1, " \
+    assert "firmware 0.5.0 does not report the board's own limits beside the lowered ones (GET_INFO page 1, " \
            "firmware 0.3.0 on): `steadytouch flash` updates it" in out, out

@@ -281,3 +281,34 @@ def test_the_calibration_reports_skin_model_is_range_checked():
         struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, *bad)
         with pytest.raises(ProtocolError, match="field skin="):
             decode(bytes(b))
+
+
+def test_the_calibration_reports_tau_gain_is_decoded_and_goes_with_a_model():
+    """Calibration bytes 62-63 (firmware 0.5.0): rule 7's tau gain + 0x8000, 0 (what an older firmware sends):
+    off; a gain beside no model is refused."""
+    b = bytearray(64)
+    b[0] = hp.REP_CAL
+    b[hp.O_CAL_MODE] = sc.MODE_FAST
+    struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, 500, 36045, 14000)
+    assert decode(bytes(b)).skin_tau_q16 == sc.SKIN_TAU_OFF
+    for g in (0, -1234, sc.SKIN_TAU_MAX_Q16, -sc.SKIN_TAU_MAX_Q16):
+        struct.pack_into("<H", b, hp.O_CAL_SKIN_TAU, g + 0x8000)
+        assert decode(bytes(b)).skin_tau_q16 == g
+    struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, 0, 0, 0)
+    with pytest.raises(ProtocolError, match="field skin_tau_q16="):
+        decode(bytes(b))
+
+
+def test_set_skin_takes_a_tau_gain_only_within_its_range_and_with_a_model():
+    from steadytouch.protocol import CommandError, Commands
+
+    c = Commands()
+    r = c.set_skin(500, 36045, 14000, 0, -2000)
+    assert struct.unpack_from("<H", r, hp.O_ARG + 10)[0] == 0x8000 - 2000
+    assert struct.unpack_from("<H", c.set_skin(500, 36045, 14000, 0), hp.O_ARG + 10)[0] == 0  # (off)
+    for bad, msg in (((500, 36045, 14000, 0, sc.SKIN_TAU_MAX_Q16 + 1), "tau_q16=32768 out of range"),
+                     ((500, 36045, 14000, 0, -40000), "tau_q16=-40000 out of range"),
+                     ((0, 0, 0, 0, 5), "tau_q16=5 with no skin model"),
+                     ((500, 36045, 14000, 0, 1.5), "tau_q16 must be a whole number")):
+        with pytest.raises(CommandError, match=msg):
+            c.set_skin(*bad)
