@@ -248,3 +248,34 @@ def test_info_shows_a_channels_skin_model(monkeypatch, capsys):
         assert cli.main(["info", "--device", url]) == 0
     out = capsys.readouterr().out
     assert "ch1: skin model Rs 500 ohm, beta 0.550, Cp 14000 pF; tau read x 0.948 (rule 7)" in out, out
+
+
+def test_a_fast_run_with_skin_models_and_a_tau_gain_records_and_audits_bit_exact(tmp_path, monkeypatch, capsys):
+    """End to end through sim:// (firmware 0.5.0): two channels with different skin models, channel 0 with rule
+    7's tau gain; `record --arm` writes each channel's model and gain into the header (GET_INFO's Calibration
+    report) and `audit` replays the gel step bit-exact from it. Without the header's gain the replay parts from
+    the device (the check can fail)."""
+    import contextlib
+
+    from steadytouch import cli
+    from steadytouch.audit import audit
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    import sensation_core as sc
+
+    url = "sim://gel-step?channels=2&mode=fast"
+    out = tmp_path / "rec.csv"
+    with open_transport(url) as t:
+        d = Device(t)
+        assert d.skin(500, 36045, 14000, ch=0, tau_q16=-1500).ok and d.skin(800, 40000, 20000, ch=1).ok
+        assert d.mode(sc.MODE_FAST).ok and d.calibrate(1000, 1000, -1670, 186000).ok
+        monkeypatch.setattr(cli, "open_transport", lambda u: contextlib.nullcontext(t))
+        cli.main(["record", str(out), "--device", url, "--arm", "--seconds", "3"])
+    meta, rows = read_recording(out)
+    assert meta["firmware"] == "0.5.0" and meta["ch0_skin_tau_q16"] == "-1500"
+    assert meta["ch1_skin_tau_q16"] == str(sc.SKIN_TAU_OFF) and meta["ch1_skin_cp_pf"] == "20000"
+    assert {r["mode"] for r in rows} == {sc.MODE_FAST} and len(rows) > 150, len(rows)
+    r = audit(meta, rows)
+    assert r.checked > 150 and not r.mismatches and not r.no_skin, r.mismatches[:3]
+    assert audit({**meta, "ch0_skin_tau_q16": str(sc.SKIN_TAU_OFF)}, rows).mismatches
