@@ -248,12 +248,12 @@ def exp2q(lx: int) -> int:
 @micropython.viper
 def mul_q16(x: int, b: int) -> int:
     """x * b / 2**16 rounded towards zero, |x| < 2**21, |b| < 2**17 (split: < 2**30)."""
-    a = -x if x < 0 else x
-    c = -b if b < 0 else b
+    a = 0 - x if x < 0 else x
+    c = 0 - b if b < 0 else b
     y = (((a >> 10) * c) >> 6) + (((a & 0x3FF) * c) >> 16)
     if x < 0:
-        return y if b < 0 else -y
-    return -y if b < 0 else y
+        return y if b < 0 else 0 - y
+    return 0 - y if b < 0 else y
 
 
 def word(j, bias=0):

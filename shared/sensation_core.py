@@ -149,7 +149,7 @@ def _fixed_current(c, mode: int, rp_ohm: int) -> int:
         t = (t + 1) >> 1  # rounded
     elif mode == MODE_PULSE_WIDTH_LINEAR:  # tangent of Eq. 4 at Rp0: dT/dRp = 2 mQ / I0
         dr = rp_ohm - k[_K_RP0]
-        x = int(muldiv(k[_K_MQN], dr if dr >= 0 else -dr, k[_K_MQD], 1, _MQ_CAP))  # 2 mQ |dRp| in pC
+        x = int(muldiv(k[_K_MQN], dr if dr >= 0 else 0 - dr, k[_K_MQD], 1, _MQ_CAP))  # 2 mQ |dRp| in pC
         x = (x + (k[_K_I0] >> 1)) // k[_K_I0]
         t = t0 + x if dr >= 0 else t0 - x
     i = k[_K_I0]

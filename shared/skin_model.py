@@ -266,9 +266,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         w = m >> 8
         a = (k << 16) + e[_T_G + eu] + ((e[_T_G1 + eu] * m + 0x8000) >> 16) + ((w * (256 - w) * e[_T_G2 + eu] + 0x10000) >> 17)
         ma = v[pb + _P_LI] - _L_1MA
-        mc = -ma if ma < 0 else ma
+        mc = 0 - ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-        a += -my if ma < 0 else my
+        a += 0 - my if ma < 0 else my
         b = a + 0x40000
     # one search's set-up of the model's evaluation: what x does not change, read and
     # computed once (bit for bit the sums and products the evaluation made each time).
@@ -327,9 +327,9 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
     else:
         n = ob if kind == _K_TWO else pb  # the pulse whose I and T the model reads
         ma = v[n + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-        mc = -ma if ma < 0 else ma
+        mc = 0 - ma if ma < 0 else ma
         my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-        hmy = -my if ma < 0 else my
+        hmy = 0 - my if ma < 0 else my
         hrl = v[n + _P_RLP]
         if kind == _K_PEEL:  # ls = log2 S of pulse o + mul_q16(x, beta - 1), lc = log2 Cp + x
             hls = v[ob + _P_LS] - _V_BIAS
@@ -337,13 +337,13 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             hmb = beta - 0x10000
             hsg = 1 if hmb < 0 else 0
             if hmb < 0:
-                hmb = -hmb
+                hmb = 0 - hmb
         elif kind == _K_TWO:  # lc and ls from pulse p's reading
             hq = v[ob + _P_LT] + _L_1E6
             ma = v[pb + _P_LI] - _L_1MA  # mul_q16(ma, beta), inline (beta >= 0)
-            mc = -ma if ma < 0 else ma
+            mc = 0 - ma if ma < 0 else ma
             my = (((mc >> 10) * beta) >> 6) + (((mc & 0x3FF) * beta) >> 16)
-            h2m = -my if ma < 0 else my
+            h2m = 0 - my if ma < 0 else my
             h2t = v[pb + _P_LT] + _L_1E6 + 0x100000 - _L_LN2
             h2r = rs - v[pb + _P_RP]
         else:  # _K_ANCHOR, _K_RP: ls = x, lc = lc0
@@ -379,7 +379,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         if hk == _K_LAW:  # x = log2 Q (1/16 pC ... see below) on the mE curve
             ma = hli - x  # lr = log2 R(I) = ls - mul_q16(li - log2 1 mA, beta), inline (beta >= 0; hli: log2 mE - log2 1 mA)
             if ma < 0:
-                ma = -ma
+                ma = 0 - ma
                 lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
             else:
                 lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
@@ -390,21 +390,21 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
         elif hk == _K_CEIL:  # x = log2 I at t_max
             ma = x - hli  # lr as _K_LAW's (hli: log2 1 mA)
             if ma < 0:
-                ma = -ma
+                ma = 0 - ma
                 lr = hls + (((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16)
             else:
                 lr = hls - ((((ma >> 10) * beta) >> 6) + (((ma & 0x3FF) * beta) >> 16))
             lq = hq
         elif hk == _K_PEEL:  # contact a: S ~ a**(beta - 1), Cp ~ a, from pulse o's S
             if x < 0:  # my = mul_q16(x, beta - 1), inline (hmb: |beta - 1|, hsg: 1 if beta < 1)
-                ma = -x
+                ma = 0 - x
                 my = (((ma >> 10) * hmb) >> 6) + (((ma & 0x3FF) * hmb) >> 16)
                 if hsg == 0:
-                    my = -my
+                    my = 0 - my
             else:
                 my = (((x >> 10) * hmb) >> 6) + (((x & 0x3FF) * hmb) >> 16)
                 if hsg != 0:
-                    my = -my
+                    my = 0 - my
             lr = hls + my - hmy
             lq = hq - x
         else:  # _K_TWO: p's reading gives Cp in closed form, Cp = T / (R z), z = -ln(1 - (Rp - Rs) / R)
@@ -722,8 +722,8 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             break
         it += 1
         w = b - a
-        num = fa if fa > 0 else -fa
-        den = num + (fb if fb > 0 else -fb)
+        num = fa if fa > 0 else 0 - fa
+        den = num + (fb if fb > 0 else 0 - fb)
         while den >= 0x40000:
             den >>= 1
             num >>= 1
@@ -743,7 +743,7 @@ def _root(vv, kind: int, a: int, b: int, lc0: int) -> int:
             x = b - 1
         if it == 1 and x0 > a and x0 < b:  # the caller's guess first
             x = x0
-    if (fa if fa > 0 else -fa) <= (fb if fb > 0 else -fb):
+    if (fa if fa > 0 else 0 - fa) <= (fb if fb > 0 else 0 - fb):
         return a
     return b
 

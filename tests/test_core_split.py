@@ -177,3 +177,34 @@ def test_delivered_and_update_as_the_frame_calls_them_allocate_nothing(micropyth
     r = run_mp(micropython, script, [core_mpy_dir])
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "frames 600 error None", r.stdout + r.stderr
+
+
+def test_no_unary_minus_or_invert_in_viper_code():
+    """MicroPython's native emitter negated (and inverted) a viper int in the register that holds a local, so
+    `a = -x` also set x to -x (micropython/micropython#14397, fixed by #19508 after v1.28, the firmware's
+    version: the chip has it). The first three locals of a function live in registers: mul_q16(x, b) read
+    x's sign after negating it, so on MicroPython mul_q16(-189, 36045) gave +103 (CPython -103): found when
+    skin_tau.anchor_tau (I below 1 mA) parted from the host's replay on branch w25 (session 26). Viper code
+    writes 0 - x and x ^ -1 instead; this test keeps any unary - or ~ on a variable out of every viper
+    function."""
+    found = []
+    for p in sorted((ROOT / "shared").glob("*.py")) + sorted((ROOT / "firmware").glob("*.py")):
+        for f in ast.walk(ast.parse(p.read_text())):
+            if isinstance(f, ast.FunctionDef) and any(isinstance(d, ast.Attribute) and d.attr == "viper"
+                                                      for d in f.decorator_list):
+                found += [f"{p.name}:{n.lineno} {f.name}: {ast.unparse(n)}" for n in ast.walk(f)
+                          if isinstance(n, ast.UnaryOp) and isinstance(n.op, (ast.USub, ast.Invert))
+                          and not isinstance(n.operand, ast.Constant)]
+    assert not found, found
+
+
+def test_mul_q16_keeps_its_sign_in_the_micropython_vm(micropython, tmp_path):
+    """The case that found the emitter's bug above, run in the MicroPython VM (viper as on the chip)."""
+    from fixmath import mul_q16
+
+    cases = [(-189, 36045), (189, 36045), (-189, -36045), (189, -36045), (-1, 65536), (-(2**20), 2**16 + 5)]
+    script = tmp_path / "m.py"
+    script.write_text("from fixmath import mul_q16\nprint([mul_q16(x, b) for x, b in %r])\n" % cases)
+    p = run_mp(micropython, script, [SHARED])
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == str([mul_q16(x, b) for x, b in cases]) == "[-103, 103, 103, -103, -1, -1048656]"
