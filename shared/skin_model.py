@@ -1114,7 +1114,7 @@ class SkinModel:
         v[_V_NI] = i_k
         v[_V_NT] = t_k
         v[_V_ACH_OK] = 0
-        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (checked at calibration): S and Cp
+        lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (its gain set with the model): S and Cp
         tauf = 0  # from it and this Rp at once
         if lt > 0 and v[_V_TCK] == 1:
             lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)

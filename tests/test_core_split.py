@@ -183,9 +183,10 @@ def test_no_unary_minus_or_invert_in_viper_code():
     """MicroPython's native emitter negated (and inverted) a viper int in the register that holds a local, so
     `a = -x` also set x to -x (micropython/micropython#14397, fixed by #19508 after v1.28, the firmware's
     version: the chip has it). The first three locals of a function live in registers: mul_q16(x, b) read
-    x's sign after negating it, so on MicroPython mul_q16(-189, 36045) gave +103 (CPython -103) and rule 7's
-    anchor (skin_tau.anchor_tau, I below 1 mA) parted from the host's replay. Viper code writes 0 - x and
-    x ^ -1 instead; this test keeps any unary - or ~ on a variable out of every viper function."""
+    x's sign after negating it, so on MicroPython mul_q16(-189, 36045) gave +103 (CPython -103): found when
+    skin_tau.anchor_tau (I below 1 mA) parted from the host's replay on branch w25 (session 26). Viper code
+    writes 0 - x and x ^ -1 instead; this test keeps any unary - or ~ on a variable out of every viper
+    function."""
     found = []
     for p in sorted((ROOT / "shared").glob("*.py")) + sorted((ROOT / "firmware").glob("*.py")):
         for f in ast.walk(ast.parse(p.read_text())):
