@@ -220,7 +220,7 @@ def test_a_store_over_the_longest_file_boot_reads_finishes_within_the_watchdog(c
     sent = [cmd.get_info(), cmd.set_vmon_all([(1010000, 0, 1000000), (1010000, 0, 1000000)], store=True),
             cmd.get_info(), cmd.set_vmon_all([(1010000, 0, 1000000), (1010000, 0, 1000000)], store=True),
             cmd.get_info()]
-    reps = _run(chip, cfg, sent, ms=1500)
+    reps = _run(chip, cfg, sent, ms=2000)
     acks = [(r.command, r.result) for r in reps if isinstance(r, Ack)]
     info = [r.vmon_state for r in reps if isinstance(r, Info)]
     assert acks == [(hp.CMD_SET_VMON, hp.RES_OK)] * 2, acks
