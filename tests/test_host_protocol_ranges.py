@@ -15,7 +15,7 @@ import sensation_core as sc
 
 from steadytouch.device import Device
 from steadytouch.protocol import (Ack, CalInfo, CommandError, Commands, Info, ProtocolError, RESULT_WORDS, STOP_WORDS,
-                                  Telemetry, decode)
+                                  VMON_STATE_WORDS, Telemetry, decode)
 
 
 class RecordingTransport:
@@ -150,9 +150,22 @@ def within_documented_ranges(r) -> bool:
                 and (r.keepalive_ms == 0 or 50 <= r.keepalive_ms <= 10000) and r.board.isprintable()
                 and 0 <= r.flags <= 0xFF)  # bits not known to this host: ignored
     if isinstance(r, CalInfo):
-        return (r.result in RESULT_WORDS and r.channel <= 3 and r.flags <= 7 and r.i0_ua <= sc.I_LIMIT_UA
-                and r.t0_us <= sc.T_LIMIT_US and sc.X_STAR_MIN_OHM <= r.x_star_ohm <= 0 and 0 <= r.y_star_pc
-                and (r.rp0_ohm == 0 or sc.RP_MIN_OHM <= r.rp0_ohm <= sc.RP_MAX_OHM) and r.mode in sc.MODES)
+        skin = (r.skin_rs_ohm, r.skin_beta_q16, r.skin_cp_pf)
+        return (r.result in RESULT_WORDS and r.channel <= 3 and r.flags <= 0x1F and r.i0_ua <= sc.I_LIMIT_UA
+                and r.t0_us <= sc.T_LIMIT_US and sc.X_STAR_MIN_OHM <= r.x_star_ohm <= 0
+                and 0 <= r.y_star_pc <= sc.Q_LIMIT_PC
+                and (r.rp0_ohm == 0 or sc.RP_MIN_OHM <= r.rp0_ohm <= sc.RP_MAX_OHM) and r.mode in sc.MODES
+                and r.vmon_state in VMON_STATE_WORDS
+                and (r.dac_gain_ppm == 0 or hp.VMON_DAC_PPM_MIN <= r.dac_gain_ppm <= hp.VMON_DAC_PPM_MAX)
+                and ((r.vmon_gain_ppm, r.vmon_offset_mv) == (0, 0)
+                     or (hp.VMON_GAIN_PPM_MIN <= r.vmon_gain_ppm <= hp.VMON_GAIN_PPM_MAX
+                         and hp.VMON_OFFSET_MV_MIN <= r.vmon_offset_mv <= hp.VMON_OFFSET_MV_MAX))
+                and (skin == (0, 0, 0) and r.skin_tau_q16 == sc.SKIN_TAU_OFF
+                     or (r.skin_rs_ohm <= sc.SKIN_RS_MAX_OHM
+                         and sc.SKIN_BETA_MIN_Q16 <= r.skin_beta_q16 <= sc.SKIN_BETA_MAX_Q16
+                         and sc.SKIN_CP_MIN_PF <= r.skin_cp_pf <= sc.SKIN_CP_MAX_PF
+                         and (r.skin_tau_q16 == sc.SKIN_TAU_OFF
+                              or abs(r.skin_tau_q16) <= sc.SKIN_TAU_MAX_Q16))))
     return False
 
 
@@ -162,6 +175,23 @@ def _plausible(rng: random.Random) -> bytearray:
     b = bytearray(rng.choice((rng.randrange(256), rng.randrange(0, 8))) for _ in range(64))
     b[0] = rng.choice((1, 2, 3, 4))
     struct.pack_into("<II", b, 4, rng.randrange(2**30), rng.randrange(2**30))
+    if b[0] == hp.REP_CAL and rng.random() < 0.7:  # (review of session 25: a valid Calibration report was never built)
+        b[hp.O_RESULT] = rng.randrange(3)
+        b[hp.O_CAL_CH] = rng.randrange(4)
+        b[hp.O_CAL_FLAGS] = rng.randrange(0x20)
+        b[hp.O_CAL_MODE] = rng.choice(sc.MODES)
+        b[hp.O_CAL_VMON_STATE] = rng.randrange(4)
+        struct.pack_into("<HH", b, hp.O_CAL_I0, rng.randrange(20001), rng.randrange(20001))
+        b[hp.O_CAL_X:hp.O_CAL_X + 4] = bytes(4) if rng.random() < 0.5 else struct.pack("<i", -rng.randrange(3000))
+        b[hp.O_CAL_Y:hp.O_CAL_Y + 4] = struct.pack("<i", rng.randrange(300000))
+        b[hp.O_CAL_RP0:hp.O_CAL_RP0 + 4] = bytes(4)
+        struct.pack_into("<iii", b, hp.O_CAL_VMON_GAIN, 0, 0, 0)
+        b[hp.O_CAL_VMON_STATE + 1:hp.O_CAL_DAC_GAIN] = bytes(hp.O_CAL_DAC_GAIN - hp.O_CAL_VMON_STATE - 1)
+        struct.pack_into("<i", b, hp.O_CAL_DAC_GAIN, rng.choice((0, 1000000, rng.randrange(2**31))))
+        skin = rng.choice(((0, 0, 0), (500, 36045, 14000), (rng.randrange(6000), rng.randrange(2**17),
+                                                              rng.randrange(3000000))))
+        struct.pack_into("<HII", b, hp.O_CAL_SKIN_RS, *skin)
+        struct.pack_into("<H", b, hp.O_CAL_SKIN_TAU, rng.choice((0, 0x8000, rng.randrange(2**16))))
     return b
 
 
@@ -169,7 +199,7 @@ def test_decoder_fuzz_value_in_range_or_protocol_error():
     seed = random.randrange(2**32)
     print(f"decoder fuzz seed {seed}")
     rng = random.Random(seed)
-    n_ok = n_err = 0
+    n_ok = n_err = n_cal = 0
     for k in range(40000):
         b = bytes(rng.randrange(256) for _ in range(64)) if k % 4 == 0 else bytes(_plausible(rng))
         try:
@@ -179,8 +209,9 @@ def test_decoder_fuzz_value_in_range_or_protocol_error():
             assert "\n" not in str(e) and ("field" in str(e) or "bytes" in str(e)), str(e)
             continue
         n_ok += 1
+        n_cal += isinstance(r, CalInfo)
         assert within_documented_ranges(r), (seed, b.hex(), r)
-    assert n_err and n_ok, (n_ok, n_err)
+    assert n_err and n_ok and n_cal > 100, (n_ok, n_err, n_cal)
 
 
 @pytest.mark.parametrize("offset, value, field", [
