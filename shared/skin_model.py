@@ -77,6 +77,10 @@ _L_STEP = const(0x2B80)  # log2(1 + 1/8) in Q.16
 # sent, tau is not used (docs/controller.md, rule 7)
 SKIN_TAU_MAX_Q16 = const(0x7FFF)  # |gain| just under 1/2 octave (Q.16): SET_SKIN carries it as a u16 + 0x8000
 SKIN_TAU_OFF = const(-0x8000)  # "no tau gain": rule 7 does not read tau (0 on the wire)
+# rule 7 anchors on a tau only when the Cp it gives agrees within this (log2 Q.16: 1/8 octave) with the Cp the
+# tau read before it gave: a single wild tau (or Rp) never shapes the model (review of session 26: tau x 0.5 on one
+# pulse, +16 % felt)
+FAST_TAU_AGREE = const(0x2000)
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -178,7 +182,8 @@ _V_TJ = const(47)  # SkinModel.tau_jumps: jumps anchored on the decay's tau (rul
 _V_TCK = const(48)  # SkinModel.tau_ok: 1: rule 7 reads tau (the host measured its gain, _V_TLK), 0: not
 _V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
 _V_TLK = const(50)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the skin's tau), Q.16, as set
-_V_N = const(51)
+_V_TPC = const(51)  # log2 Cp (+ _V_BIAS) the last tau read gave (its anchor), 0: none since the calibration
+_V_N = const(52)
 _V_BIAS = const(0x10000000)
 
 
@@ -940,6 +945,7 @@ class SkinModel:
         v[_V_RFT] = 0
         v[_V_SNA] = 0
         v[_V_TLC] = 0
+        v[_V_TPC] = 0  # (the skin of an earlier arm's taus may not be this one's)
 
     def set_tau(self, ok, gain_q16):
         """Rule 7: ok 1: the jump reads the decay's tau, gain_q16 (log2 of the monitor's tau over the skin's, as
@@ -948,6 +954,7 @@ class SkinModel:
         v = self.v
         v[_V_TCK] = 1 if ok else 0
         v[_V_TLK] = (gain_q16 if ok else 0) + _V_BIAS
+        v[_V_TPC] = 0
         if v[_V_TLC]:
             v[_V_LC] = self.lc_set + _V_BIAS  # (a tau anchor's Cp is not carried over)
             v[_V_TLC] = 0
@@ -1118,8 +1125,21 @@ class SkinModel:
         tauf = 0  # from it and this Rp at once
         if lt > 0 and v[_V_TCK] == 1:
             lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)
-        if lt > 0 and v[_V_TCK] == 1 and int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
-            tauf = 1
+        if lt > 0 and v[_V_TCK] == 1:
+            ls0 = v[_V_LS]
+            lc0 = v[_V_LC]
+            if int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
+                pc = v[_V_TPC]
+                v[_V_TPC] = v[_V_LC]
+                d = v[_V_LC] - pc
+                if pc != 0 and (d if d >= 0 else 0 - d) <= FAST_TAU_AGREE:
+                    tauf = 1  # (two reads agree on Cp)
+            else:
+                v[_V_TPC] = 0
+            if tauf == 0:
+                v[_V_LS] = ls0  # (the anchor not taken: the model as it was)
+                v[_V_LC] = lc0
+        if tauf:
             v[_V_TLC] = 1
             v[_V_RFT] = 0  # (no refit, no contact hypothesis, no halving: Cp is read, not inferred)
             v[_V_SNA] = 0

@@ -128,11 +128,12 @@ def test_bit_identical_in_the_micropython_vm_and_allocation_free(micropython, co
     assert no_alloc and r == want[0][0] == 1
 
 
-def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.0, told=None):
+def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.0, told=None, glitch=None):
     """MODE_FAST on the model's own skin (exact readings: Rp and log2 tau rounded, tau read x gain), the fitted
     Cp cp_set and rule 7's tau gain told (set_skin's tau_q16; None: the true one, log2 gain); steps: [(S ohm,
     Cp pF)] in turn, n pulses each. Per step the felt mQ error of each pulse (the first pulse is the one read
-    on the changed skin) and the controller."""
+    on the changed skin) and the controller. glitch (step, pulse, x): that pulse's tau read x; None: the same
+    pulse told no tau (the reference for a glitch)."""
     x, y = -1670, 186000
     c = sc.Controller(100, 10000, 20, 8000, 30000000)
     s0, cp0 = steps[0]
@@ -149,36 +150,65 @@ def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.
             rp, lt, _, _ = reading(rs, beta, s, cp, i, t)
             errs.append((i * t - y) / (rp - x) / target - 1)
             c.ltau_q16 = lt + round(math.log2(gain) * 65536) if tau else 0
+            if glitch is not None and (len(out), len(errs) - 1) == glitch[:2]:
+                c.ltau_q16 += round(math.log2(glitch[2]) * 65536)
             c.update(rp)
             assert c.ltau_q16 == 0  # (told for one update only)
         out.append(errs)
     return out, c
 
 
-def test_with_the_decays_tau_a_step_of_the_skin_is_met_on_the_next_pulse():
-    """Rule 7: the jump anchors S and Cp on the reading and its tau, so a step that changes Cp too (gel:
-    S / 3, Cp x 2.5; the fitted Cp that of the dry skin) is met by the first corrected pulse (the law on
-    the skin as it is); without tau the model's Cp is inferred and the same pulse is off by more."""
+def test_with_the_decays_tau_a_step_of_the_skin_is_met_by_the_second_corrected_pulse():
+    """Rule 7: the jump anchors S and Cp on the reading and its tau once two reads agree on Cp, so a step that
+    changes Cp too (gel: S / 3, Cp x 2.5; the fitted Cp that of the dry skin) is met by the second corrected
+    pulse (the law on the skin as it is; the first, its tau disagreeing with the dry skin's, is rules 1-6's);
+    without tau the model's Cp is inferred and the gel's second pulse is still +7 %."""
     steps = [(30000, 14000), (10000, 35000), (30000, 14000), (16000, 9000)]
     with_tau, c = closed_loop(steps)
     without, c0 = closed_loop(steps, tau=False)
+    assert [e[:2] for e in with_tau] == [e[:2] for e in without]  # (the first corrected pulse: rules 1-6)
     for errs in with_tau[1:]:
-        assert abs(errs[1]) < 0.004, errs[:4]  # (the pulse's rounding: 1 uA, 1 us)
-        assert max(abs(e) for e in errs[1:]) < 0.004, errs
+        assert max(abs(e) for e in errs[2:]) < 0.004, errs  # (the pulse's rounding: 1 uA, 1 us)
     assert c.skin.tau_jumps >= 3 and c0.skin.tau_jumps == 0
-    assert max(abs(e[1]) for e in without[1:]) > 0.01, [e[:4] for e in without]  # (what rule 7 changes)
+    assert max(e[2] for e in without[1:]) > 0.05, [e[:4] for e in without]  # (what rule 7 changes)
+
+
+@pytest.mark.parametrize("wild", [0.25, 0.5, 2.0, 4.0])
+@pytest.mark.parametrize("at", [0, 1])
+def test_a_single_wild_tau_never_shapes_the_model(wild, at):
+    """One tau read x wild (a glitch on the decay) with the Rp true, on the gel step's first or second pulse (where
+    the model jumps): its Cp disagrees with the reads before and after it, so no jump anchors on it (review of
+    session 26: on the realistic bench x 0.5 on one pulse felt +16 %, x 0.25 +23 %, where tau-off moved 0.1 %).
+    The glitch costs the pulses rules 1-6 take, never more: every pulse after it is felt no further above the
+    target than with tau or without it."""
+    steps = [(30000, 14000), (10000, 35000)]
+    ref, _ = closed_loop(steps)
+    off, _ = closed_loop(steps, tau=False)
+    out, c = closed_loop(steps, glitch=(1, at, wild))
+    assert out != ref  # (the glitch reached a jump)
+    for o, r, f in zip(out[1][at + 1:], ref[1][at + 1:], off[1][at + 1:]):
+        assert o <= max(r, f) + 1e-9, (out[1], ref[1], off[1])
+    assert max(abs(e) for e in out[1][at + 3:]) < 0.004, out[1]
+
+
+def test_a_first_tau_after_a_calibration_is_not_anchored_on():
+    """The Cp of the first tau after a calibration has nothing to agree with (an earlier arm's skin may not be
+    this one's): two reads are needed."""
+    c = closed_loop([(30000, 14000)], n=1)[1]
+    assert c.skin.tau_jumps == 0
 
 
 @pytest.mark.parametrize("gain", [0.72, 0.8, 1.25, 1.38])
 def test_a_monitor_that_scales_tau_is_taken_out_with_the_gain_set(gain):
     """A decay read x gain on every pulse (a monitor's filter, a lead: review of session 25, x 2 felt +40 %
     when the controller took it as true): the host measures the gain on the calibration sweeps (skin.tau_gain)
-    and sends it with the model; taken out of every tau, the steps are met as with a true tau."""
+    and sends it with the model; taken out of every tau, the steps are met as with a true tau (by the second
+    corrected pulse)."""
     steps = [(30000, 14000), (10000, 35000), (30000, 14000), (16000, 9000)]
     out, c = closed_loop(steps, gain=gain)
     assert c.skin.tau_ok == 1 and c.skin_tau_q16 == round(math.log2(gain) * 65536)
     for errs in out[1:]:
-        assert max(abs(e) for e in errs[1:]) < 0.004, errs
+        assert max(abs(e) for e in errs[2:]) < 0.004, errs
     assert c.skin.tau_jumps >= 3
 
 
