@@ -739,6 +739,7 @@ class Stimulator:
                     self._latch(c, _C_STOP_RP_FAULT)
                     ctl.stop(sc.ST_UNCALIBRATED)
                 return
+            k[_C_K_LT] = v[_LT]  # (ctl.ltau_q16: the calibration pulse's tau, rule 7's check in calibrate)
             ctl.calibrate(c.i0, c.t0, rp0, c.x, c.y)
             v[_CALIB] = 0
             r1 = v[_CR]

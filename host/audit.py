@@ -180,6 +180,10 @@ def _step(c, r, cal, cal_rp, cal_pair, ch, sent, tau) -> bool:
         if sc.RP_MIN_OHM <= rp <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
             rp0 = hp.cal_rp0(r1, rp, r["mode"] == sc.MODE_CONSTANT_ENERGY)
             if rp0:
+                lt = r["ltau_q16"] if tau else 0  # (the device tells calibrate the calibration pulse's tau: rule 7)
+                if not 0 <= lt < decay.LTAU_END:
+                    raise ValueError(f"ltau_q16={lt} out of range 0..{decay.LTAU_END - 1}")
+                c.ltau_q16 = lt
                 c.calibrate(i0, t0, rp0, x, y)
                 cal_pair[ch] = (min(r1, rp), max(r1, rp))
             elif r["stop"] == hp.STOP_RP_FAULT:  # readings that never agreed: latched

@@ -81,6 +81,9 @@ SKIN_TAU_OFF = const(-0x8000)  # "no tau gain": rule 7 does not read tau (0 on t
 # tau read before it gave: a single wild tau (or Rp) never shapes the model (review of session 26: tau x 0.5 on one
 # pulse, +16 % felt)
 FAST_TAU_AGREE = const(0x2000)
+# ... and only after the calibration pulse's tau (told before calibrate) gave the fitted Cp within it: a gain that is
+# not the monitor's now (a stale sweeps file, a monitor changed since) turns tau off for that calibration, never
+# on (review of session 26: a gain x 1.15 after the sweeps +8 %, x 1.25 +13 % felt)
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -104,6 +107,7 @@ _KC_I = const(22)  # and the next pulse: c.i_ua, c.t_us, c.status (sensation_cor
 _KC_T = const(23)
 _KC_ST = const(24)
 _KC_MJ = const(29)  # c.model_jumps
+_KC_LT = const(34)  # log2 tau told before calibrate: the calibration pulse's (sensation_core._K_LT)
 _KC_LTU = const(35)  # log2 tau of the pulse just measured, Q.16, 0: none (sensation_core._K_LTU)
 
 _L_1E6 = const(1306235)  # log2(1e6): tau_us = R_ohm * Cp_pF / 1e6
@@ -183,7 +187,9 @@ _V_TCK = const(48)  # SkinModel.tau_ok: 1: rule 7 reads tau (the host measured i
 _V_TLC = const(49)  # 1: the model's Cp (_V_LC) is a tau anchor's (a jump without tau takes the fitted Cp back)
 _V_TLK = const(50)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the skin's tau), Q.16, as set
 _V_TPC = const(51)  # log2 Cp (+ _V_BIAS) the last tau read gave (its anchor), 0: none since the calibration
-_V_N = const(52)
+_V_TCHK = const(52)  # SkinModel.tau_checked: 1 the calibration pulse's tau agreed with the fitted model (rule 7 on
+# until the next calibration), 0 not (tau not used)
+_V_N = const(53)
 _V_BIAS = const(0x10000000)
 
 
@@ -904,6 +910,7 @@ class SkinModel:
     tau_jumps = word(_V_TJ)  # model jumps anchored on the decay's tau (rule 7; counts up, saturating)
     tau_ok = word(_V_TCK)  # 1: rule 7 reads tau (set with its gain), 0: tau not used
     tau_gain_q16 = word(_V_TLK, _V_BIAS)  # log2 of the monitor's tau gain as set (Q.16)
+    tau_checked = word(_V_TCHK)  # 1: this calibration's tau agreed with the fitted model (rule 7 reads tau)
 
     def set(self, rs_ohm, beta_q16, cp_pf):
         """The fitted parameters (Controller.set_skin has checked them); all 0: no model."""
@@ -946,6 +953,18 @@ class SkinModel:
         v[_V_SNA] = 0
         v[_V_TLC] = 0
         v[_V_TPC] = 0  # (the skin of an earlier arm's taus may not be this one's)
+        k = c._k  # rule 7's check: the calibration pulse's tau (told before calibrate; taken here, never by an
+        lt = k[_KC_LT]  # update) anchored with Rp0 must give the fitted Cp within FAST_TAU_AGREE
+        k[_KC_LT] = 0
+        v[_V_TCHK] = 0
+        if v[_V_TCK] == 1 and lt > 0:
+            ls0 = v[_V_LS]
+            if int(anchor_tau(self, c.rp0_ohm, lt - (v[_V_TLK] - _V_BIAS), c.i0_ua, c.t0_us)):
+                d = v[_V_LC] - (self.lc_set + _V_BIAS)
+                if -FAST_TAU_AGREE <= d <= FAST_TAU_AGREE:
+                    v[_V_TCHK] = 1
+            v[_V_LS] = ls0
+            v[_V_LC] = self.lc_set + _V_BIAS
 
     def set_tau(self, ok, gain_q16):
         """Rule 7: ok 1: the jump reads the decay's tau, gain_q16 (log2 of the monitor's tau over the skin's, as
@@ -955,6 +974,7 @@ class SkinModel:
         v[_V_TCK] = 1 if ok else 0
         v[_V_TLK] = (gain_q16 if ok else 0) + _V_BIAS
         v[_V_TPC] = 0
+        v[_V_TCHK] = 0  # (checked at the next calibration)
         if v[_V_TLC]:
             v[_V_LC] = self.lc_set + _V_BIAS  # (a tau anchor's Cp is not carried over)
             v[_V_TLC] = 0
@@ -1123,6 +1143,8 @@ class SkinModel:
         v[_V_ACH_OK] = 0
         lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (its gain set with the model): S and Cp
         tauf = 0  # from it and this Rp at once
+        if v[_V_TCHK] != 1:
+            lt = 0
         if lt > 0 and v[_V_TCK] == 1:
             lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)
         if lt > 0 and v[_V_TCK] == 1:

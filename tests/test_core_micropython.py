@@ -120,7 +120,8 @@ def loop(N):
             c.set_mode(sc.MODES[(n // 500) % len(sc.MODES)])  # every mode, in turn
         if n % 1000 == 0:  # MODE_FAST with and without the skin model
             if n % 2000:
-                c.set_skin(500, 36045, 14000, 0)  # (with rule 7's tau gain: the random taus reach the tau jump)
+                c.set_skin(500, 36045, 14000, 0)  # (with rule 7's tau gain, its calibration check taken as
+                c.skin.tau_checked = 1  # passed: the random taus reach the tau jump)
             else:
                 c.set_skin(0, 0, 0)
         rp = 3000 + (rp * 7 + n * 131) % 120000  # wanders over the whole valid range
@@ -153,7 +154,7 @@ def test_update_allocates_nothing_under_heap_lock(micropython, core_mpy_dir, tmp
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().startswith("updates 10000 error None"), r.stdout + r.stderr
     w = r.stdout.split()
-    assert int(w[-3]) > 100 and int(w[-1]) > 50, r.stdout  # the skin model's jumps, and its tau anchor, were exercised
+    assert int(w[-3]) > 100 and int(w[-1]) > 10, r.stdout  # the skin model's jumps, and its tau anchor (two taus agreeing on Cp: fewer), were exercised
 
 
 def test_heap_lock_harness_detects_an_allocation(micropython, core_mpy_dir, tmp_path):
