@@ -692,7 +692,7 @@ class Stimulator:
             o = 0
         v[_VP] = vp
         # tau = R_skin Cp: the decay after the fall (its straddling sample skipped), the monitor's
-        # offset out (gain cancels in the ratio); telemetry only so far (docs/performance.md)
+        # offset out (gain cancels in the ratio); told to the controller before its update (rule 7, docs/controller.md)
         v[_LT] = int(_ltau(c.adc, e + 1, w - e - 1, o, v[_DTU])) if n > 0 and e + 1 < w else 0
         di = v[_DI]
         if di <= 0:

@@ -79,7 +79,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
             cal = tuple(meta_int(meta, f"ch{ch}_{k}", path) for k in ("i0_ua", "t0_us", "x_star_ohm", "y_star_pc"))
             cals[ch] = cal
             c = sc.Controller(*lim)
-            used |= _skin(c, meta, f"ch{ch}_", path)
+            used |= _skin(c, meta, f"ch{ch}_", path, fw)
             rp0 = int(meta.get(f"ch{ch}_rp0_ohm", "0") or 0)
             if rp0:
                 c.calibrate(cal[0], cal[1], rp0, cal[2], cal[3])
@@ -89,7 +89,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
         for ch in range(4):
             cals[ch] = cal
             ctls[ch] = sc.Controller(*lim)
-            used |= _skin(ctls[ch], meta, "", path)
+            used |= _skin(ctls[ch], meta, "", path, fw)
     if not cals:
         raise RecordingError(f"{path}: no calibration (i0_ua, t0_us, x_star_ohm, y_star_pc) in the header")
     stray = sorted(k for k in meta if k.endswith(SKIN_KEYS) and k not in used)
@@ -107,7 +107,7 @@ def audit(meta: dict, rows: list[dict], path="recording") -> AuditResult:
     return r
 
 
-def _skin(c, meta, prefix, path):
+def _skin(c, meta, prefix, path, fw=None):
     """MODE_FAST's skin model from the header (`record`: GET_INFO's Calibration report, firmware 0.4.1 on),
     as the device's controller had it; none in the header: none (0 0 0). Returns the keys it took."""
     keys = [prefix + k for k in SKIN_KEYS[:3]]
@@ -118,6 +118,10 @@ def _skin(c, meta, prefix, path):
         raise RecordingError(f"{path}: the skin model in the header lacks {', '.join(k for k in keys if k not in meta)}")
     v = [meta_int(meta, k, path) for k in keys]
     tk = prefix + SKIN_KEYS[3]  # rule 7's tau gain (a header before firmware 0.5.0 has none: off)
+    if tk not in meta and fw is not None and fw >= TAU_FIRMWARE:  # (review of session 26: replayed with tau off,
+        # the device blamed for the mismatches)
+        raise RecordingError(f"{path}: the skin model in the header lacks {tk} (firmware {meta['firmware']} "
+                             "records rule 7's tau gain beside the model)")
     if tk in meta:
         keys.append(tk)
         v.append(meta_int(meta, tk, path))

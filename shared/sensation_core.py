@@ -360,15 +360,17 @@ class Controller:
         """MODE_FAST's electrode model (skin_model.py): series resistance Rs (ohm), current exponent beta (Q.16) and
         capacitance Cp (pF) of the pair, as fitted to the calibration pulses (host/skin.py), and the monitor's tau
         gain measured on them (log2 tau read / the skin's, Q.16; SKIN_TAU_OFF: rule 7 does not read tau). All three
-        0: no model (tau off). ValueError (nothing changed) when out of range."""
+        0: no model (and tau off). ValueError (nothing changed) when out of range."""
         if rs_ohm != 0 or beta_q16 != 0 or cp_pf != 0:
             _check("rs_ohm", rs_ohm, 0, SKIN_RS_MAX_OHM)
             _check("beta_q16", beta_q16, SKIN_BETA_MIN_Q16, SKIN_BETA_MAX_Q16)
             _check("cp_pf", cp_pf, SKIN_CP_MIN_PF, SKIN_CP_MAX_PF)
             if tau_q16 != SKIN_TAU_OFF:
                 _check("tau_q16", tau_q16, -SKIN_TAU_MAX_Q16, SKIN_TAU_MAX_Q16)
+        elif tau_q16 != SKIN_TAU_OFF:
+            raise ValueError("tau_q16=%d with no skin model (off: %d)" % (tau_q16, SKIN_TAU_OFF))
         self.skin.set(rs_ohm, beta_q16, cp_pf)
-        if tau_q16 != SKIN_TAU_OFF and (rs_ohm or beta_q16 or cp_pf):
+        if tau_q16 != SKIN_TAU_OFF:
             self.skin.set_tau(1, tau_q16)
         self.skin_rs_ohm, self.skin_beta_q16, self.skin_cp_pf = rs_ohm, beta_q16, cp_pf
 

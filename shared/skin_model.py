@@ -81,9 +81,11 @@ SKIN_TAU_OFF = const(-0x8000)  # "no tau gain": rule 7 does not read tau (0 on t
 # tau read before it gave: a single wild tau (or Rp) never shapes the model (review of session 26: tau x 0.5 on one
 # pulse, +16 % felt)
 FAST_TAU_AGREE = const(0x2000)
-# ... and only after the calibration pulse's tau (told before calibrate) gave the fitted Cp within it: a gain that is
-# not the monitor's now (a stale sweeps file, a monitor changed since) turns tau off for that calibration, never
-# on (review of session 26: a gain x 1.15 after the sweeps +8 %, x 1.25 +13 % felt)
+# ... and only after the calibration pulse's tau (told before calibrate) gave the fitted Cp within FAST_TAU_CAL_AGREE
+# (1/16 octave; a true tau: within +-0.02 on 13 of 15 study electrodes, a gain x 1.15 moves it 0.08-0.15): a gain
+# that is not the monitor's now (a stale sweeps file, a monitor changed since) turns tau off for that calibration,
+# never on (review of session 26: a gain x 1.15 after the sweeps +8 %, x 1.25 +13 % felt)
+FAST_TAU_CAL_AGREE = const(0x1000)
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -954,14 +956,14 @@ class SkinModel:
         v[_V_TLC] = 0
         v[_V_TPC] = 0  # (the skin of an earlier arm's taus may not be this one's)
         k = c._k  # rule 7's check: the calibration pulse's tau (told before calibrate; taken here, never by an
-        lt = k[_KC_LT]  # update) anchored with Rp0 must give the fitted Cp within FAST_TAU_AGREE
+        lt = k[_KC_LT]  # update) anchored with Rp0 must give the fitted Cp within FAST_TAU_CAL_AGREE
         k[_KC_LT] = 0
         v[_V_TCHK] = 0
         if v[_V_TCK] == 1 and lt > 0:
             ls0 = v[_V_LS]
             if int(anchor_tau(self, c.rp0_ohm, lt - (v[_V_TLK] - _V_BIAS), c.i0_ua, c.t0_us)):
                 d = v[_V_LC] - (self.lc_set + _V_BIAS)
-                if -FAST_TAU_AGREE <= d <= FAST_TAU_AGREE:
+                if -FAST_TAU_CAL_AGREE <= d <= FAST_TAU_CAL_AGREE:
                     v[_V_TCHK] = 1
             v[_V_LS] = ls0
             v[_V_LC] = self.lc_set + _V_BIAS

@@ -527,6 +527,8 @@ def test_the_controller_reads_the_decay_and_audit_replays_it():
     res = audit({**meta, "firmware": "0.5.0"}, rows)
     assert res.checked >= 190 and not res.mismatches, res.mismatches[:3]
     assert audit({**meta, "firmware": "0.4.0"}, rows).mismatches  # (the check can fail: tau changed the run)
+    with pytest.raises(RecordingError, match="the skin model in the header lacks skin_tau_q16 \\(firmware 0.5.0 "):
+        audit({**{k: v for k, v in meta.items() if k != "skin_tau_q16"}, "firmware": "0.5.0"}, rows)
     off = audit({**meta, "firmware": "0.5.0", "skin_tau_q16": str(sc.SKIN_TAU_OFF)}, rows)
     assert off.mismatches  # (the header's gain is what the replay reads: off, the taus change nothing)
     with pytest.raises(RecordingError, match="skin_tau_q16=0 with no skin model"):

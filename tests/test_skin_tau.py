@@ -230,7 +230,7 @@ def test_a_gain_that_is_not_the_monitors_now_turns_tau_off_at_the_calibration(k)
 def test_tau_off_is_the_run_without_tau_and_a_gain_out_of_range_is_refused():
     """set_skin with SKIN_TAU_OFF (the host's tau_gain did not trust the sweeps' taus, or none were recorded):
     the taus told change nothing, the run is the one told none. A gain past SKIN_TAU_MAX_Q16 is refused,
-    nothing changed; with no model a gain is ignored (off)."""
+    nothing changed; a gain with no model is refused too."""
     steps = [(30000, 14000), (10000, 35000), (30000, 14000)]
     out, c = closed_loop(steps, told=sc.SKIN_TAU_OFF)
     ref, _ = closed_loop(steps, tau=False)
@@ -240,7 +240,10 @@ def test_tau_off_is_the_run_without_tau_and_a_gain_out_of_range_is_refused():
         with pytest.raises(ValueError, match="tau_q16"):
             c.set_skin(400, 36045, 15000, bad)
         assert (c.skin_rs_ohm, c.skin_cp_pf, c.skin_tau_q16) == (500, 14000, 100)
-    c.set_skin(0, 0, 0, 100)
+    with pytest.raises(ValueError, match="tau_q16=100 with no skin model"):  # (as the device and the host refuse it)
+        c.set_skin(0, 0, 0, 100)
+    assert c.skin_tau_q16 == 100
+    c.set_skin(0, 0, 0)
     assert c.skin_tau_q16 == sc.SKIN_TAU_OFF and not c.skin.tau_ok
 
 
