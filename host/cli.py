@@ -914,7 +914,12 @@ def cmd_skin(a) -> int:
     if a.send:
         Commands().set_skin(*args, _channel(a), tau)  # (a value out of range: one line before the device is opened)
         with open_transport(a.device) as t:
-            ack = Device(t).skin(*args, ch=_channel(a), tau_q16=tau)
+            d = Device(t)
+            if tau != sc.SKIN_TAU_OFF and not (i := d.info()).reports_tau:  # (its SET_SKIN ignores the gain's bytes)
+                say(f"{a.device}: firmware {i.firmware} does not read tau (rule 7: firmware 0.5.0 on, `steadytouch "
+                    "flash`): the model is sent without the gain")
+                tau = sc.SKIN_TAU_OFF
+            ack = d.skin(*args, ch=_channel(a), tau_q16=tau)
             say(f"{a.device}: {ack.words()}")
     return 0
 

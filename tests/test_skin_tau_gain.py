@@ -24,7 +24,7 @@ else:
 skin = bench.skin
 
 
-def sweeps(k=1.0, add_us=0.0, seed=7, n=30, electrode=0, keep=1.0):
+def sweeps(k=1.0, add_us=0.0, seed=7, n=30, electrode=0, keep=1.0, noise_oct=0.0):
     """n wide sweeps on one study electrode; the tau read x k + add_us; keep: the share of pulses whose tau
     is read at all. Returns the averaged fit, the (i_ua, t_us, ltau_q16) of every sweep pulse and the sweeps
     (each a list of (i_ua, t_us, rp_ohm))."""
@@ -43,7 +43,7 @@ def sweeps(k=1.0, add_us=0.0, seed=7, n=30, electrode=0, keep=1.0):
             row.append((i, t, m.pulse(i, t)[1]))
             lt = m.ltau_q16
             if lt and pick.random() < keep:
-                tau = 2 ** (lt / 65536) * k + add_us
+                tau = 2 ** (lt / 65536 + noise_oct * pick.normal()) * k + add_us
                 lt = max(1, round(math.log2(tau) * 65536)) if tau > 1 else 0
             else:
                 lt = 0
@@ -78,6 +78,17 @@ def test_a_tau_read_wrong_is_not_used(k, add_us, why):
     f, taus, _ = sweeps(k=k, add_us=add_us)
     g = skin.tau_gain(f.model, taus)
     assert not g.trusted and g.q16 == sc.SKIN_TAU_OFF and why in g.why, g
+
+
+def test_a_noisy_or_narrow_tau_is_not_used():
+    """Reads that spread over more than TAU_SPREAD_MAX (0.3 octave of noise), or sweeps that span too little of
+    tau to tell a slope (only the 1 ms pulses): refused, named."""
+    f, taus, _ = sweeps(noise_oct=0.3)
+    g = skin.tau_gain(f.model, taus)
+    assert not g.trusted and "tau's reads spread over" in g.why, g
+    f, taus, _ = sweeps()
+    g = skin.tau_gain(f.model, [x for x in taus if x[1] in (700, 1000)])
+    assert not g.trusted and "the sweeps span" in g.why, g
 
 
 def test_too_few_taus_read_is_not_used():
@@ -122,3 +133,27 @@ def test_skin_sends_the_gain_measured_on_the_sweeps_ltau_column(tmp_path, monkey
     assert cli.main(["skin", str(bad)]) == 2
     assert "bad.csv row 4: column ltau_q16 is not a whole number: 'x1'" in capsys.readouterr().err
 
+
+
+def test_skin_sends_no_gain_to_a_firmware_that_does_not_read_tau(tmp_path, monkeypatch, capsys):
+    """A device before firmware 0.5.0 ignores SET_SKIN's gain bytes: the command says so and sends the model
+    without it (review of session 26: it printed "jumps anchor on it")."""
+    import dataclasses
+
+    from steadytouch import cli
+    from steadytouch.device import Device
+    from steadytouch.transport import open_transport
+
+    _, taus, sw = sweeps(n=12)
+    p = tmp_path / "sweeps.csv"
+    p.write_text("sweep,i_ua,t_us,rp_ohm,ltau_q16\n" + "".join(
+        f"{s},{i},{t},{rp},{taus[s * len(row) + j][2]}\n" for s, row in enumerate(sw) for j, (i, t, rp) in enumerate(row)))
+    url = "sim://steady"
+    info = Device.info
+    monkeypatch.setattr(Device, "info", lambda self: dataclasses.replace(info(self), firmware="0.4.1"))
+    with open_transport(url) as t:
+        monkeypatch.setattr(cli, "open_transport", lambda u: contextlib.nullcontext(t))
+        assert cli.main(["skin", str(p), "--send", "--channel", "0", "--device", url]) == 0
+        assert Device(t).calibration(0).skin_tau_q16 == sc.SKIN_TAU_OFF
+    out = capsys.readouterr().out
+    assert "firmware 0.4.1 does not read tau (rule 7: firmware 0.5.0 on" in out and "skin: ok" in out, out
