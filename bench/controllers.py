@@ -389,8 +389,8 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
             FIT_INFO.update(trusted=f.trusted, shape_sd=f.shape_sd, misfit=f.misfit, why=f.why,
                             tau=tg.trusted if tg else False, tau_why=tg.why if tg else "")
             c.set_skin(*f.args(), tg.q16 if tg else sc.SKIN_TAU_OFF)
-            if meter and tg and tg.trusted:  # ARM after SET_SKIN, as on the device: calibrate on a pulse read now,
-                _, rp0, i_true0, rp_true0 = meter.pulse(i0, t0)  # told its tau (rule 7's check of the gain)
+            if meter:  # ARM after SET_SKIN, as on the device: calibrate on a pulse read now (told its tau: rule 7's
+                _, rp0, i_true0, rp_true0 = meter.pulse(i0, t0)  # check of the gain; with tau off or not, the same run)
                 target_true = (i_true0 * t0 - Y) * 1000 / (rp_true0 - X)
                 c.ltau_q16 = meter.ltau_q16
                 c.calibrate(i0, t0, rp0, X, Y)
