@@ -86,6 +86,10 @@ FAST_TAU_AGREE = const(0x2000)
 # that is not the monitor's now (a stale sweeps file, a monitor changed since) turns tau off for that calibration,
 # never on (review of session 26: a gain x 1.15 after the sweeps +8 %, x 1.25 +13 % felt)
 FAST_TAU_CAL_AGREE = const(0x1000)
+# ... and not after FAST_TAU_STRIKES more tau reads disagreed than agreed since the calibration: a decay read much
+# noisier than on the sweeps (review of session 26: 0.2 octave of noise in the run only, +26 % felt) turns tau off
+# until the next calibration (a step of the skin is one disagreement, then its reads agree)
+FAST_TAU_STRIKES = const(3)
 _L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
 # moved it by less does not check a refitted Cp
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
@@ -191,7 +195,8 @@ _V_TLK = const(50)  # SkinModel.tau_gain_q16 + _V_BIAS: log2 (tau read / the ski
 _V_TPC = const(51)  # log2 Cp (+ _V_BIAS) the last tau read gave (its anchor), 0: none since the calibration
 _V_TCHK = const(52)  # SkinModel.tau_checked: 1 the calibration pulse's tau agreed with the fitted model (rule 7 on
 # until the next calibration), 0 not (tau not used)
-_V_N = const(53)
+_V_TSTR = const(53)  # tau reads that disagreed with the one before, less those that agreed (>= 0)
+_V_N = const(54)
 _V_BIAS = const(0x10000000)
 
 
@@ -955,6 +960,7 @@ class SkinModel:
         v[_V_SNA] = 0
         v[_V_TLC] = 0
         v[_V_TPC] = 0  # (the skin of an earlier arm's taus may not be this one's)
+        v[_V_TSTR] = 0
         k = c._k  # rule 7's check: the calibration pulse's tau (told before calibrate; taken here, never by an
         lt = k[_KC_LT]  # update) anchored with Rp0 must give the fitted Cp within FAST_TAU_CAL_AGREE
         k[_KC_LT] = 0
@@ -1158,6 +1164,12 @@ class SkinModel:
                 d = v[_V_LC] - pc
                 if pc != 0 and (d if d >= 0 else 0 - d) <= FAST_TAU_AGREE:
                     tauf = 1  # (two reads agree on Cp)
+                    if v[_V_TSTR] > 0:
+                        v[_V_TSTR] -= 1
+                elif pc != 0:
+                    v[_V_TSTR] += 1
+                    if v[_V_TSTR] >= FAST_TAU_STRIKES:
+                        v[_V_TCHK] = 0  # (tau off until the next calibration)
             else:
                 v[_V_TPC] = 0
             if tauf == 0:

@@ -128,7 +128,8 @@ def test_bit_identical_in_the_micropython_vm_and_allocation_free(micropython, co
     assert no_alloc and r == want[0][0] == 1
 
 
-def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.0, told=None, glitch=None):
+def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.0, told=None, glitch=None,
+                noise=None):
     """MODE_FAST on the model's own skin (exact readings: Rp and log2 tau rounded, tau read x gain), the fitted
     Cp cp_set and rule 7's tau gain told (set_skin's tau_q16; None: the true one, log2 gain); steps: [(S ohm,
     Cp pF)] in turn, n pulses each. Per step the felt mQ error of each pulse (the first pulse is the one read
@@ -151,6 +152,8 @@ def closed_loop(steps, tau=True, n=12, rs=500, beta=36045, cp_set=14000, gain=1.
             rp, lt, _, _ = reading(rs, beta, s, cp, i, t)
             errs.append((i * t - y) / (rp - x) / target - 1)
             c.ltau_q16 = lt + round(math.log2(gain) * 65536) if tau else 0
+            if noise is not None and c.ltau_q16:  # (noise: a random.Random, tau read x 2**(0.3 N(0, 1)))
+                c.ltau_q16 += round(0.3 * noise.gauss(0, 1) * 65536)
             if glitch is not None and (len(out), len(errs) - 1) == glitch[:2]:
                 c.ltau_q16 += round(math.log2(glitch[2]) * 65536)
             c.update(rp)
@@ -190,6 +193,23 @@ def test_a_single_wild_tau_never_shapes_the_model(wild, at):
     for o, r, f in zip(out[1][at + 1:], ref[1][at + 1:], off[1][at + 1:]):
         assert o <= max(r, f) + 1e-9, (out[1], ref[1], off[1])
     assert max(abs(e) for e in out[1][at + 3:]) < 0.004, out[1]
+
+
+def test_a_decay_read_much_noisier_than_on_the_sweeps_turns_tau_off():
+    """tau read x 2**(0.3 N(0, 1)) on every pulse of the run (the sweeps' spread check never saw it: review of
+    session 26, 0.2 octave +26 % felt): reads disagree on Cp more often than they agree, and after
+    FAST_TAU_STRIKES more disagreements tau is off until the next calibration; the steps are then rules 1-6's."""
+    import random
+
+    steps = [(30000, 14000), (10000, 35000), (30000, 14000), (16000, 9000)]
+    out, c = closed_loop(steps, noise=random.Random(3))
+    off, _ = closed_loop(steps, tau=False)
+    assert c.skin.tau_checked == 0
+    for o, f in zip(out[1:], off[1:]):  # (the noisy reads before it are used: after the first corrected pulse
+        assert max(o[2:]) <= max(max(f[2:]), 0.025), (o, f)  # none felt more than 2.5 % above target where
+        # tau-off is within it)
+    out, c = closed_loop(steps)  # (the same without noise: on to the end)
+    assert c.skin.tau_checked == 1
 
 
 def test_a_first_tau_after_a_calibration_is_not_anchored_on():
