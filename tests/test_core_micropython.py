@@ -129,6 +129,7 @@ def loop(N):
             rp = 250000  # faults too
         if n % 3:  # the decay's tau told (rule 7's anchor), one update in three none
             c.ltau_q16 = 400000 + (n * 7919) % 320000
+            c.skin.tau_checked = 1  # (these random taus disagree: rule 7's strikes would turn tau off)
         c.update(rp)
         sc.rp_from_vp(rp // 10, c.i_ua + 1)
         n += 1
