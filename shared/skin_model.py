@@ -1151,11 +1151,11 @@ class SkinModel:
         v[_V_ACH_OK] = 0
         lt = pk[_KC_LTU]  # rule 7: the decay after the pulse read a tau (its gain set with the model): S and Cp
         tauf = 0  # from it and this Rp at once
-        if v[_V_TCHK] != 1:
-            lt = 0
-        if lt > 0 and v[_V_TCK] == 1:
+        if lt > 0 and v[_V_TCHK] == 1:  # (checked at this calibration: a gain is set, _V_TCK 1)
             lt -= v[_V_TLK] - _V_BIAS  # (the monitor's tau gain out)
-        if lt > 0 and v[_V_TCK] == 1:
+        else:
+            lt = 0
+        if lt > 0:
             ls0 = v[_V_LS]
             lc0 = v[_V_LC]
             if int(anchor_tau(self, rp_ohm, lt, i_k, t_k)):
