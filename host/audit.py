@@ -164,6 +164,14 @@ def _replay(rows, ctls, cals, sent, tau) -> AuditResult:
     return AuditResult(checked, bad, skipped)
 
 
+def _ltau(r, tau) -> int:
+    """The row's log2 tau as the device told its controller (0: none, or a firmware that told none)."""
+    lt = r["ltau_q16"] if tau else 0
+    if not 0 <= lt < decay.LTAU_END:
+        raise ValueError(f"ltau_q16={lt} out of range 0..{decay.LTAU_END - 1}")
+    return lt
+
+
 def _step(c, r, cal, cal_rp, cal_pair, ch, sent, tau) -> bool:
     """Replay one recorded pulse on controller c; False if it cannot be (no calibration yet).
     cal_rp[ch]: the channel's last calibration pulse's Rp not yet confirmed (0: none);
@@ -184,10 +192,7 @@ def _step(c, r, cal, cal_rp, cal_pair, ch, sent, tau) -> bool:
         if sc.RP_MIN_OHM <= rp <= sc.RP_MAX_OHM and r["stop"] != hp.STOP_ELECTRODE_OFF:
             rp0 = hp.cal_rp0(r1, rp, r["mode"] == sc.MODE_CONSTANT_ENERGY)
             if rp0:
-                lt = r["ltau_q16"] if tau else 0  # (the device tells calibrate the calibration pulse's tau: rule 7)
-                if not 0 <= lt < decay.LTAU_END:
-                    raise ValueError(f"ltau_q16={lt} out of range 0..{decay.LTAU_END - 1}")
-                c.ltau_q16 = lt
+                c.ltau_q16 = _ltau(r, tau)  # (the device tells calibrate the calibration pulse's tau: rule 7)
                 c.calibrate(i0, t0, rp0, x, y)
                 cal_pair[ch] = (min(r1, rp), max(r1, rp))
             elif r["stop"] == hp.STOP_RP_FAULT:  # readings that never agreed: latched
@@ -212,9 +217,6 @@ def _step(c, r, cal, cal_rp, cal_pair, ch, sent, tau) -> bool:
         if st & ~sc.ST_BOUND_MASK or st < 0:
             raise ValueError(f"sent_status={st} out of range (bits of 0x{sc.ST_BOUND_MASK:x})")
         c.delivered(r["i_ua"], r["t_us"], st)
-        lt = r["ltau_q16"] if tau else 0
-        if not 0 <= lt < decay.LTAU_END:
-            raise ValueError(f"ltau_q16={lt} out of range 0..{decay.LTAU_END - 1}")
-        c.ltau_q16 = lt  # (the device's stim._control: the decay read after the pulse, for this update)
+        c.ltau_q16 = _ltau(r, tau)  # (the device's stim._control: the decay read after the pulse, for this update)
         c.update(r["rp_ohm"])
     return True
