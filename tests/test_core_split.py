@@ -28,7 +28,7 @@ COPIES = {
     skin_model: {"_RP_MAX_OHM": sc.RP_MAX_OHM, "_SAT30": 2**30 - 1, "_MQ_CAP": 2**29 - 1,
                  "_KB_I": sc._K_B + fast_step._B_I, "_KB_T": sc._K_B + fast_step._B_T,
                  "_KB_RP": sc._K_B + fast_step._B_RP, "_KC_I": sc._K_I, "_KC_T": sc._K_T, "_KC_ST": sc._K_ST,
-                 "_KC_MJ": sc._K_MJ, "_KC_LTU": sc._K_LTU},
+                 "_KC_MJ": sc._K_MJ, "_KC_LT": sc._K_LT, "_KC_LTU": sc._K_LTU},
     fixmath: {"_SAT30": 2**30 - 1},
 }
 
