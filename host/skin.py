@@ -244,21 +244,27 @@ def sweep_wide(i0_ua: int, t0_us: int, t_max_us: int = 8000) -> list[tuple[int, 
     return [(i0_ua, t0_us)] + [(round(math.sqrt(me / t)), t) for t in WIDE_T_US if t != t0_us and t <= t_max_us]
 
 
+def _column(path, name) -> list[tuple[int, str]] | None:
+    """(line, cell) of column `name` on each data row load() reads (blank rows skipped), None without it."""
+    from .files import csv_rows, read_text_file
+
+    table = csv_rows(path, read_text_file(path, "CSV file"))
+    head = [h.strip() for h in table[0]]
+    if name not in head:
+        return None
+    j = head.index(name)
+    return [(n, r[j].strip() if j < len(r) else "") for n, r in enumerate(table[1:], start=2) if any(c.strip() for c in r)]
+
+
 def load_taus(path) -> list[tuple[float, float, int]] | None:
     """(i_ua, t_us, ltau_q16) of every row of a sweeps CSV with an `ltau_q16` column (as `record` writes it:
     the decay's log2 tau after each pulse, Q.16; 0: none read), for tau_gain; None without that column."""
-    from .files import csv_rows, read_text_file
-
     rows = load(path)
-    table = csv_rows(path, read_text_file(path, "CSV file"))
-    head = [h.strip() for h in table[0]]
-    if "ltau_q16" not in head:
+    cells = _column(path, "ltau_q16")
+    if cells is None:
         return None
-    j = head.index("ltau_q16")
     out = []
-    body = [(n, r) for n, r in enumerate(table[1:], start=2) if any(c.strip() for c in r)]
-    for (n, r), (i, t, _) in zip(body, rows):
-        v = r[j].strip() if j < len(r) else ""
+    for (n, v), (i, t, _) in zip(cells, rows):
         try:
             lt = int(v)
         except ValueError:
@@ -274,16 +280,11 @@ def load_sweeps(path) -> list[list[tuple[float, float, float]]]:
     """Repeated sweeps from a CSV with i_ua, t_us, rp_ohm and a `sweep` column (rows of
     one sweep share its value; every sweep the same pulses in the same order). Without
     a `sweep` column: one sweep."""
-    from .files import csv_rows, read_text_file
-
     rows = load(path)
-    table = csv_rows(path, read_text_file(path, "CSV file"))
-    head = [h.strip() for h in table[0]]
-    if "sweep" not in head:
+    cells = _column(path, "sweep")
+    if cells is None:
         return [rows]
-    j = head.index("sweep")
-    ids = [r[j].strip() if j < len(r) else "" for r in table[1:] if any(c.strip() for c in r)]
     groups: dict[str, list] = {}
-    for sid, row in zip(ids, rows):
+    for (_, sid), row in zip(cells, rows):
         groups.setdefault(sid, []).append(row)
     return list(groups.values())
