@@ -62,6 +62,10 @@ SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
+# a fall of more than 1/8 that the law on the model (rule 2) asks for past Q_k/4 is searched on down
+# to Q_k / 2**this (skin_model._law_fall): gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9 (before,
+# the model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's study; session 27)
+FAST_MODEL_FALL_LOG2 = const(4)
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
 # taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
 FAST_MODEL_STEP_LOG2 = const(3)
@@ -818,11 +822,41 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
 
 
 @micropython.viper
+def _law_fall(vv, lq_k: int) -> int:
+    """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured):
+    when the law on the model asks at Q_k for a fall of more than 1/8 (a step of the skin,
+    as FAST_MODEL_STEP_LOG2) and at Q_k/4 still for less than Q_k/4, its root from
+    Q_k / 2**FAST_MODEL_FALL_LOG2 up to Q_k/4; else NOROOT (also if none). A law that is
+    nearly flat along the mE curve, as on electrodes whose mQ varies by a few % from
+    T = 200 to 4000 us, is left alone: a root far below a pulse that is practically on it
+    would change the settled pulse's shape (x 4 in current) for nothing felt. Gel on a
+    pulse at the duration ceiling asks for Q_k/5 ... Q_k/9. Each evaluation is a unit of
+    the jump's work."""
+    v = ptr32(vv)
+    root = _root
+    x = lq_k
+    while True:  # g at Q_k, then at Q_k/4
+        if v[_V_WORK] >= FAST_MODEL_WORK_MAX:
+            v[_V_CUT] = 1
+            return NOROOT
+        v[_V_WORK] += 1
+        g = int(root(vv, _K_LAW, x, x - 1, 0))
+        if g == NOROOT or g >= (0 - _L_STEP if x == lq_k else 0):
+            return NOROOT
+        if x != lq_k:
+            break
+        x = lq_k - 0x20000
+    v[_V_FB] = g + _V_BIAS  # [a, x]: g(x) < 0 known
+    return int(root(vv, _K_LAW + _FB_KNOWN, lq_k - (FAST_MODEL_FALL_LOG2 << 16), x, 0))
+
+
+@micropython.viper
 def _law_q(vv, lq_k: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
-    4 Q_k, from Q_k on), else on the line at t_max; NOROOT if none. Machine code with
-    the values in vv: no attribute lookup (fixmath.exp2q inline)."""
+    4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else a
+    fall past Q_k/4, _law_fall), else on the line at t_max; NOROOT if none. Machine code
+    with the values in vv: no attribute lookup (fixmath.exp2q inline)."""
     v = ptr32(vv)
     root = _root  # (one global lookup a call, not one a search)
     lq_max = v[_V_LQMAX]
@@ -867,6 +901,8 @@ def _law_q(vv, lq_k: int) -> int:
             n = int(root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT and v[_V_CUT] == 0:
                 n = int(_law_near(vv, lq_k, hi))
+                if n == NOROOT and v[_V_CUT] == 0:
+                    n = int(_law_fall(vv, lq_k))
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
@@ -874,6 +910,8 @@ def _law_q(vv, lq_k: int) -> int:
         n = int(root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
         if n == NOROOT and v[_V_CUT] == 0:
             n = int(_law_near(vv, lq_k, hi))
+            if n == NOROOT and v[_V_CUT] == 0:
+                n = int(_law_fall(vv, lq_k))
         if n == NOROOT:
             return NOROOT
         n += 0x40000

@@ -1,6 +1,6 @@
 """Record the core's golden traces (tests/test_core_golden.py replays them).
 
-Run: .venv/bin/python tests/golden/make_golden.py [--coverage]
+Run: .venv/bin/python tests/golden/make_golden.py [--coverage] [--answers]
 
 Writes tests/golden/core_traces.json.gz: op streams (tests/golden/replay.py's format)
 with the sha256 of what the core answered after every op, from
@@ -393,6 +393,31 @@ def record_all():
     return {"format": 1, "cases": cases, "bench": bench}
 
 
+def rerecord_answers(old):
+    """The hypothesis section's stored streams kept (drawing them again changes them: hypothesis's
+    draws are not the same from run to run), the seeded sections made again (the skin section's
+    Rp comes from closed loops through the core, so a behaviour change changes its streams), and
+    every stream's answers recorded with the core as it is now: an intended behaviour change then
+    shows as the streams whose answers changed. Returns (data, names of the changed ones)."""
+    hyp = [c["ops"] for c in old["cases"] if c["name"].startswith("hyp/")]
+    sections = {"hyp": hyp, "ops": ops_cases(), "skin": skin_cases(), "hand": hand_cases()}
+    before = {c["name"]: c["sha"] for c in old["cases"]}
+    cases, changed = [], []
+    for sec, lines in sections.items():
+        for k, line in enumerate(lines):
+            recs = []
+            replay.run(line, recs)
+            c = {"name": f"{sec}/{k}", "ops": line, "sha": sha(recs)}
+            if k % KEEP_EVERY == 0:
+                c["out"] = recs
+            if before.get(c["name"]) != c["sha"]:
+                changed.append(c["name"])
+            cases.append(c)
+    bench = {key: sha(recs) for key, (ops, recs) in record_bench().items()}
+    changed += [f"bench/{k}" for k, v in bench.items() if old["bench"].get(k) != v]
+    return {"format": 1, "cases": cases, "bench": bench}, changed
+
+
 def line_coverage(fn):
     """Run fn with a line tracer on shared/*.py; return {file: set of lines run}."""
     hit = {}
@@ -417,8 +442,18 @@ def line_coverage(fn):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--coverage", action="store_true", help="also list the core's lines no case runs")
+    ap.add_argument("--answers", action="store_true",
+                    help="keep the stored hypothesis streams, make the seeded ones again, record every answer "
+                         "(an intended behaviour change: says how many streams' answers changed)")
     a = ap.parse_args()
-    data = record_all()
+    if a.answers:
+        data, changed = rerecord_answers(json.loads(gzip.decompress(OUT.read_bytes())))
+        by = {}
+        for name in changed:
+            by[name.split("/")[0]] = by.get(name.split("/")[0], 0) + 1
+        print(f"answers changed in {len(changed)} of {len(data['cases']) + len(data['bench'])} streams: {by or 'none'}")
+    else:
+        data = record_all()
     raw = json.dumps(data, separators=(",", ":")).encode()
     OUT.write_bytes(gzip.compress(raw, 9, mtime=0))
     print(f"{len(data['cases'])} cases, {len(data['bench'])} bench runs, "
