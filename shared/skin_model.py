@@ -62,10 +62,12 @@ SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
-# a fall of more than 1/8 that the law on the model (rule 2) asks for past Q_k/4 is searched on down
-# to Q_k / 2**this (skin_model._law_fall): gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9 (before,
-# the model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's study; session 27)
+# a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when it
+# asks at Q_k for less than half (skin_model._law_fall): gel on a pulse at the duration ceiling asks for
+# Q_k/5 ... Q_k/9 (before, the model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's
+# study; session 27)
 FAST_MODEL_FALL_LOG2 = const(4)
+_L_FALL_ASK = const(0x10000)  # log2 of that half (Q.16): 1 octave
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
 # taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
 FAST_MODEL_STEP_LOG2 = const(3)
@@ -824,14 +826,16 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
 @micropython.viper
 def _law_fall(vv, lq_k: int) -> int:
     """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured):
-    when the law on the model asks at Q_k for a fall of more than 1/8 (a step of the skin,
-    as FAST_MODEL_STEP_LOG2) and at Q_k/4 still for less than Q_k/4, its root from
-    Q_k / 2**FAST_MODEL_FALL_LOG2 up to Q_k/4; else NOROOT (also if none). A law that is
-    nearly flat along the mE curve, as on electrodes whose mQ varies by a few % from
-    T = 200 to 4000 us, is left alone: a root far below a pulse that is practically on it
-    would change the settled pulse's shape (x 4 in current) for nothing felt. Gel on a
-    pulse at the duration ceiling asks for Q_k/5 ... Q_k/9. Each evaluation is a unit of
-    the jump's work."""
+    when the law on the model asks at Q_k for less than half of Q_k (_L_FALL_ASK) and at
+    Q_k/4 still for less than Q_k/4, its root from Q_k / 2**FAST_MODEL_FALL_LOG2 up to
+    Q_k/4; else NOROOT (also if none). Gel on a pulse at the duration ceiling asks for
+    Q_k/5 ... Q_k/9. On electrodes whose mQ is nearly flat along the mE curve the law has a
+    second fixed point far below a pulse settled at the ceiling, and a modest fall asked
+    at Q_k (1/8, one Rp read 15 % low: review of session 27) found it and moved the
+    settled pulse there for good (x 5 ... 8 in current, nothing felt); less than half is
+    asked only by a reading of less than about half the Rp: gel on, or a read that wild
+    (x 0.4 and below moves such a pulse there too; docs/controller.md). Each evaluation is
+    a unit of the jump's work."""
     v = ptr32(vv)
     root = _root
     x = lq_k
@@ -841,7 +845,7 @@ def _law_fall(vv, lq_k: int) -> int:
             return NOROOT
         v[_V_WORK] += 1
         g = int(root(vv, _K_LAW, x, x - 1, 0))
-        if g == NOROOT or g >= (0 - _L_STEP if x == lq_k else 0):
+        if g == NOROOT or g >= (0 - _L_FALL_ASK if x == lq_k else 0):
             return NOROOT
         if x != lq_k:
             break

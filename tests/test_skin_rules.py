@@ -140,6 +140,33 @@ def test_gel_on_a_pulse_at_the_ceiling_is_met_by_the_first_corrected_pulse(seed,
     assert reach[0] is not None and reach[0] <= 2 and surge[0] <= 0.05, (reach, surge)
 
 
+@pytest.mark.parametrize("seed, k, factor", [(13, 5, 0.85), (13, 5, 0.7), (13, 5, 0.5), (11, 28, 0.85), (11, 28, 0.7)])
+def test_one_low_read_does_not_move_a_pulse_settled_at_the_ceiling_for_good(monkeypatch, seed, k, factor):
+    """Review of session 27 (HIGH against the first version of the fall past Q_k/4, which searched
+    it when the law on the model asked at Q_k for a fall of more than 1/8): on these electrodes mQ
+    is nearly flat along the mE curve and the law has a second fixed point far below the pulse
+    settled at the ceiling; one Rp read 15 % low (pulse 40, no step of the skin) found it and the
+    pulse stayed there, x 5 ... 8 in current (13/5: 357 uA x 7978 us -> 2399 uA x 174 us). Now the
+    fall is searched only when the law asks at Q_k for less than half: after such a read the
+    current moves at most x 2 and the pulse before the gel (pulse 49) is back within 10 % (all
+    five fail with the 1/8 version). Not here: 11/28 with a read x 0.5, which moves the pulse
+    to the other fixed point on main too (the model-free step down, then the law's rise)."""
+    real = sc.Controller.update
+    n = [0]
+
+    def update(self, rp_ohm):
+        n[0] += 1  # (the study's loop: one update a pulse, pulse k is call k + 1)
+        return real(self, round(rp_ohm * factor) if n[0] == 41 else rp_ohm)
+
+    monkeypatch.setattr(sc.Controller, "update", update)
+    rows, target = study_run(seed, k)
+    assert n[0] == bench.STUDY_N - 1 or n[0] == bench.STUDY_N, n  # the read was injected inside the run
+    i = rows[:, 1]
+    assert rows[39, 2] >= 3000, rows[39]  # settled long, at or near the ceiling
+    assert i[41:50].max() <= 2.0 * i[39], (i[39], i[41:50])
+    assert abs(i[49] - i[39]) <= 0.1 * i[39], (i[39], i[49])
+
+
 def test_the_nearest_fixed_point_search_stays_within_its_range(monkeypatch):
     """Review of session 17: with the measured pulse at the ceiling carrying more charge than the
     mE curve gives at t_max, _law_near's first evaluation (at Q_k) lay past its upper end: a unit
