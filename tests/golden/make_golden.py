@@ -378,8 +378,11 @@ def record_bench(only=None):
     return out
 
 
-def record_all():
-    sections = {"hyp": hyp_cases(), "ops": ops_cases(), "skin": skin_cases(), "hand": hand_cases()}
+def record_all(hyp=None):
+    """Every section's streams and the core's answers to them; hyp: the hypothesis section's streams
+    to keep (else drawn again)."""
+    sections = {"hyp": hyp_cases() if hyp is None else hyp, "ops": ops_cases(), "skin": skin_cases(),
+                "hand": hand_cases()}
     cases = []
     for sec, lines in sections.items():
         for k, line in enumerate(lines):
@@ -399,23 +402,11 @@ def rerecord_answers(old):
     Rp comes from closed loops through the core, so a behaviour change changes its streams), and
     every stream's answers recorded with the core as it is now: an intended behaviour change then
     shows as the streams whose answers changed. Returns (data, names of the changed ones)."""
-    hyp = [c["ops"] for c in old["cases"] if c["name"].startswith("hyp/")]
-    sections = {"hyp": hyp, "ops": ops_cases(), "skin": skin_cases(), "hand": hand_cases()}
+    data = record_all([c["ops"] for c in old["cases"] if c["name"].startswith("hyp/")])
     before = {c["name"]: c["sha"] for c in old["cases"]}
-    cases, changed = [], []
-    for sec, lines in sections.items():
-        for k, line in enumerate(lines):
-            recs = []
-            replay.run(line, recs)
-            c = {"name": f"{sec}/{k}", "ops": line, "sha": sha(recs)}
-            if k % KEEP_EVERY == 0:
-                c["out"] = recs
-            if before.get(c["name"]) != c["sha"]:
-                changed.append(c["name"])
-            cases.append(c)
-    bench = {key: sha(recs) for key, (ops, recs) in record_bench().items()}
-    changed += [f"bench/{k}" for k, v in bench.items() if old["bench"].get(k) != v]
-    return {"format": 1, "cases": cases, "bench": bench}, changed
+    changed = [c["name"] for c in data["cases"] if before.get(c["name"]) != c["sha"]]
+    changed += [f"bench/{k}" for k, v in data["bench"].items() if old["bench"].get(k) != v]
+    return data, changed
 
 
 def line_coverage(fn):
