@@ -123,8 +123,8 @@ def test_gel_on_a_pulse_at_the_ceiling_is_met_by_the_first_corrected_pulse(seed,
     and its current within 5 % of the current the channel settles at (no dip of the charge that
     a shorter, sharper pulse would be). The settled pulse before the gel keeps its shape: on
     electrode 28 the law is nearly flat along the mE curve (a root just below Q_k/4 of a pulse
-    on the line), and a fall searched there without the 1/8 guard moved it from 535 uA x 3489 us
-    to 2511 uA x 159 us."""
+    on the line), and a version that searched Q_k/16 ... 4 Q_k at once moved it from
+    535 uA x 3489 us to 2511 uA x 159 us."""
     rows, target = study_run(seed, k)
     assert bench.STEP_NAMES[0].startswith("gel on")
     a = bench.STUDY_EVENTS[0].pulse
@@ -160,7 +160,7 @@ def test_one_low_read_does_not_move_a_pulse_settled_at_the_ceiling_for_good(monk
 
     monkeypatch.setattr(sc.Controller, "update", update)
     rows, target = study_run(seed, k)
-    assert n[0] == bench.STUDY_N - 1 or n[0] == bench.STUDY_N, n  # the read was injected inside the run
+    assert n[0] > 41, n  # the read was injected inside the run
     i = rows[:, 1]
     assert rows[39, 2] >= 3000, rows[39]  # settled long, at or near the ceiling
     assert i[41:50].max() <= 2.0 * i[39], (i[39], i[41:50])

@@ -21,6 +21,7 @@ Record with the core you trust; rerun only when a behaviour change is intended.
 """
 
 import argparse
+import collections
 import gzip
 import hashlib
 import json
@@ -439,10 +440,9 @@ def main():
     a = ap.parse_args()
     if a.answers:
         data, changed = rerecord_answers(json.loads(gzip.decompress(OUT.read_bytes())))
-        by = {}
-        for name in changed:
-            by[name.split("/")[0]] = by.get(name.split("/")[0], 0) + 1
-        print(f"answers changed in {len(changed)} of {len(data['cases']) + len(data['bench'])} streams: {by or 'none'}")
+        by = collections.Counter(name.split("/")[0] for name in changed)
+        print(f"answers changed in {len(changed)} of {len(data['cases']) + len(data['bench'])} streams: "
+              f"{dict(by) or 'none'}")
     else:
         data = record_all()
     raw = json.dumps(data, separators=(",", ":")).encode()
