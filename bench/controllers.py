@@ -242,6 +242,8 @@ class Meter:
         self.vp_off = cfg.COMPLIANCE_MV * cfg.ELECTRODE_OFF_PERMILLE // 1000
         cal = correction[0] if correction else None
         self.terms = vmon_cal.terms(cal[0], cal[1], cfg.VMON_UV_PER_COUNT) if cal else None
+        if cal and len(cal) > 2 and cal[2]:  # a DAC gain (selftest --scope): the board reports the current it drives
+            self.b.set_dac_gain(0, cal[2])
         self.ltau_q16 = 0
 
     def pulse(self, i_ua, t_us):
@@ -266,9 +268,12 @@ class Meter:
         return di, rp, b.last_i_ua[0], b.last_rp_kohm[0] * 1000
 
 
-def selftest_correction(board, load_ohm=10000, pulses=8):
+def selftest_correction(board, load_ohm=10000, pulses=8, scope=False):
     """The monitor correction `steadytouch selftest` would store for this simulated board
-    (host/selftest.py's plan and fit on a simulated resistor), as board_sim takes it."""
+    (host/selftest.py's plan and fit on a simulated resistor), as board_sim takes it.
+    scope: `selftest --scope`, read as exact: each channel's DAC gain is the board's true one
+    (stored before the fit, so the fit finds the monitor's own gain); the entries are then
+    (gain_ppm, offset_mv, dac_ppm), and Meter stores that DAC gain on its board."""
     from host import selftest as st
 
     if board != "real":
@@ -280,13 +285,16 @@ def selftest_correction(board, load_ohm=10000, pulses=8):
         m.b.analog.dac_gain[0] = board_sim.DAC_GAIN[ch]
         m.b.analog.mon_gain[0] = board_sim.MON_GAIN[ch]
         m.b.analog.mon_off_counts[0] = board_sim.MON_OFFSET_MV[ch] * 1000.0 / cfg.VMON_UV_PER_COUNT
+        dac_ppm = round(board_sim.DAC_GAIN[ch] * 1_000_000) if scope else 0
+        if dac_ppm:
+            m.b.set_dac_gain(0, dac_ppm)
         rows = []
         for i, t in st.plan(load_ohm, 500, 10000, 100, 8000, 10_000_000, cfg.COMPLIANCE_MV):
             for _ in range(pulses):
                 di, rp, _, _ = m.pulse(i, t)
                 rows.append((di, t, rp * di / 1000.0))
         f = st.fit_channel(ch, rows, load_ohm)
-        out.append((f.gain_ppm, round(f.offset_mv)))
+        out.append((f.gain_ppm, round(f.offset_mv), dac_ppm) if dac_ppm else (f.gain_ppm, round(f.offset_mv)))
     return out
 
 
@@ -565,6 +573,8 @@ def main():
                     help="how Rp is read: exact (the model's, default), or through the simulated board "
                          "(ideal, or real: the parts' errors, docs/simulation.md)")
     ap.add_argument("--correct", action="store_true", help="with --board real: the self-test's monitor correction")
+    ap.add_argument("--scope", action="store_true",
+                    help="with --correct: `selftest --scope` too (each channel's DAC gain known, read as exact)")
     ap.add_argument("--sweeps", type=int, default=10, help="repeated calibration sweeps for the averaged fit (study)")
     ap.add_argument("--peak", choices=["firmware", "end", "pairmin"], default="firmware",
                     help="the peak estimator: the firmware's (default), the last sample before the fall (no "
@@ -588,7 +598,7 @@ def main():
     SUPERVISOR = a.supervisor
     TAU = not a.no_tau
     if a.study:
-        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise, a.seed)
+        print_study(a.study, a.board, a.sweeps, a.correct, a.adc_us or None, a.noise, a.seed, a.scope)
         return
     cases = []
     for name in ("gel-step", "gel", "peel", "exercise", "off"):
@@ -602,7 +612,7 @@ def main():
             ev, n = step_events(i0, d)
             cases.append((f"step {d:+d} kohm @ {i0} uA ({r0:.0f} kohm)", i0, ev, n))
     summary = {}
-    corr = selftest_correction(a.board) if a.correct else None
+    corr = selftest_correction(a.board, scope=a.scope) if a.correct else None
     if a.board != "exact":
         print(f"(read through the {a.board} board{' with the self-test correction' if corr else ''}: mQ is the felt "
               "one; last two columns: first pulse within 1 % of the felt target, worst felt surge after the first "
@@ -676,28 +686,35 @@ STUDY_MODES = {"akhtar": (sc.MODE_AKHTAR, 1), "fast, 1 sweep (sent as is)": (sc.
                "fast, averaged sweeps + trust": (sc.MODE_FAST, 0), "fast, no model": (FAST_NO_MODEL, 1)}
 
 
-def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_us=None, noise=0.0):
+def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_us=None, noise=0.0,
+          modes=None, records=None, scope=False):
     """Step disturbances (gel on, off; half peeled, pressed back) on n_electrodes unseen
     electrodes, read through the board; per mode: pulses until the felt mQ stays within
     tol of its calibrated value (median, 90th percentile over the steps where the law can
     be met: the model-free FAST ends there with no limit holding it), and the largest felt
-    mQ above target after the first corrected pulse."""
+    mQ above target after the first corrected pulse.
+    modes: the names of STUDY_MODES to run (default all; "fast, no model" always runs: it
+    decides which steps count). records: a list that gets one dict per counted step and mode
+    (bench/study.py). scope: the DAC gain known (selftest_correction's scope)."""
     rng = np.random.default_rng(seed)
-    corr = selftest_correction(board) if correct else None
-    res = {m: {"settle": [], "surge": [], "seen": [], "out": [], "rise1": []} for m in STUDY_MODES}
+    corr = selftest_correction(board, scope=scope) if correct else None
+    chosen = {m: STUDY_MODES[m] for m in STUDY_MODES if modes is None or m in modes or m == "fast, no model"}
+    res = {m: {"settle": [], "surge": [], "seen": [], "out": [], "rise1": []} for m in chosen}
     trust = []
     skipped = 0
     for k in range(n_electrodes):
         mk = random_electrode(rng)
         runs = {}
         true_rps = {}
-        for name, (mode, sw) in STUDY_MODES.items():
+        fits = {}
+        for name, (mode, sw) in chosen.items():
             rows, target, me = run(mode, STUDY_EVENTS, STUDY_N, i0=i0, board=board, sweeps=sw or sweeps,
                                    electrode=mk, correction=corr, seed=1000 + k, adc_us=adc_us, noise=noise)
             if mode == sc.MODE_FAST and not sw:
                 trust.append(FIT_INFO.get("trusted", False))
             runs[name] = (rows, target, FIT_INFO.get("measured"))
             true_rps[name] = FIT_INFO.get("true_rp")
+            fits[name] = (bool(FIT_INFO.get("trusted", False)), bool(FIT_INFO.get("tau", False)))
         ref_rows = runs["fast, no model"][0]
         starts = [x.pulse for x in STUDY_EVENTS] + [STUDY_N]
         for j, (a, b) in enumerate(zip(starts, starts[1:])):
@@ -715,10 +732,33 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
                 r1 = first_rise(rows, target, STUDY_EVENTS, STUDY_N)[j]
                 if r1 is not None:
                     res[name]["rise1"].append(r1)
+                sm = [None] * len(STUDY_EVENTS)
                 if meas is not None:  # the controller's own view: measured mQ against its measured target
                     sm, _, _ = within(meas[0], meas[1], STUDY_EVENTS, STUDY_N, tol)
                     res[name]["seen"].append(sm[j] if sm[j] is not None else 10**6)
+                if records is not None:
+                    records.append(step_record(seed, k, j, a, b, name, rows, target, st[j], sm[j], su[j], fits[name]))
     return res, trust, skipped
+
+
+def step_record(seed, k, j, a, b, name, rows, target, reach, seen, surge, fit):
+    """One counted step of the study as bench/study.py keeps it: felt and measured reach (None:
+    never within 1 %), the worst felt surge after the first corrected pulse, the first corrected
+    pulse's felt mQ (pulse 1), and the current's largest excursion above the range between its
+    value before the step and its settled value (median of the step's last 20 pulses), in %."""
+    i, t, mq = rows[:, 1], rows[:, 2], rows[:, 4]
+    first = (mq[a + 1] - target) / target if np.isfinite(mq[a + 1]) else None
+    hi = max(i[a - 1], float(np.median(i[b - 20:b])))
+    return {"seed": seed, "electrode": k, "step": STEP_NAMES[j], "mode": name, "reach": reach, "seen": seen,
+            "surge": float(surge), "first": None if first is None else float(first),
+            "over_i": float(max(0.0, (i[a:b].max() - hi) / hi)), "trusted": fit[0], "tau": fit[1],
+            "worst_pulse": _worst(mq[a + 2:b], target)}
+
+
+def _worst(mq, target):
+    """The pulse (counted from the step's pulse 2) of the largest felt mQ, or None."""
+    ok = np.isfinite(mq)
+    return int(np.argmax(np.where(ok, mq, -np.inf))) + 2 if ok.any() else None
 
 
 STEP_NAMES = ["gel on (h 0.3)", "gel off (h 1)", "half peeled", "pressed back"]
@@ -755,11 +795,11 @@ def _rise1(xs):
     return f"{a.max():+.1%} / {int(np.sum(a > 0.05))} / {int(np.sum(a > 0.2))} of {len(a)}"
 
 
-def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0, seed=7):
-    res, trust, skipped = study(n, board, sweeps, correct, seed=seed, adc_us=adc_us, noise=noise)
+def print_study(n, board, sweeps, correct, adc_us=None, noise=0.0, seed=7, scope=False):
+    res, trust, skipped = study(n, board, sweeps, correct, seed=seed, adc_us=adc_us, noise=noise, scope=scope)
     total = len(next(iter(res.values()))["settle"])
     print(f"\n{n} unseen electrodes (seed {seed}) x 4 steps on the {board} board"
-          f"{' with the self-test correction' if correct else ''}"
+          f"{' with the self-test correction' if correct else ''}{' and the DAC gain (--scope)' if scope else ''}"
           f"{f', ADC sampled every {adc_us} us' if adc_us else ''}{f', peak: {PEAK}' if PEAK != 'firmware' else ''}"
           f"{', through the firmware supervisor' if SUPERVISOR else ''}"
           f"{f', {noise:.1%} Rp noise' if noise and board == 'exact' else ''}; {total} steps where the law can be met "

@@ -1,0 +1,60 @@
+"""bench/study.py (issue 13's study over seeds) and bench/controllers.py's --scope correction."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+spec = importlib.util.spec_from_file_location("bench_study", ROOT / "bench" / "study.py")
+study = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(study)
+bench = sys.modules.get("bench_controllers") or study._bench()
+
+
+def test_the_scope_correction_stores_the_dac_gain_and_the_monitor_s_own_gain():
+    """Without --scope the self-test fits the whole path's gain (DAC x monitor: it cannot tell them
+    apart); with it each channel's DAC gain is known and stored, and the fit finds the monitor's own."""
+    plain = bench.selftest_correction("real")
+    scoped = bench.selftest_correction("real", scope=True)
+    for ch in range(2):
+        dac, mon = bench.board_sim.DAC_GAIN[ch], bench.board_sim.MON_GAIN[ch]
+        assert len(plain[ch]) == 2
+        assert abs(plain[ch][0] / 1e6 - dac * mon) < 0.002, (plain[ch], dac * mon)
+        assert scoped[ch][2] == round(dac * 1e6)
+        assert abs(scoped[ch][0] / 1e6 - mon) < 0.002, (scoped[ch], mon)
+    m = bench.Meter(bench.board_sim.sim_electrode.Resistor(10000), "real", correction=scoped)
+    di, rp, i_true, _ = m.pulse(4500, 1000)
+    assert abs(di - i_true) <= 3, (di, i_true)  # the board reports the current it drives, to a code
+    assert abs(rp - 10000) <= 100, rp
+
+
+def test_a_small_study_writes_one_record_a_step_and_mode(tmp_path, capsys):
+    out = tmp_path / "steps.jsonl"
+    study.main(["--seeds", "7", "--electrodes", "2", "--sweeps", "3", "--jobs", "1", "--out", str(out)])
+    text = capsys.readouterr().out
+    recs = [json.loads(ln) for ln in out.read_text().splitlines()]
+    assert recs and {r["mode"] for r in recs} == set(study.MODES)
+    assert {r["electrode"] for r in recs} <= {0, 1}
+    n = sum(1 for r in recs if r["mode"] == study.MODES[0])
+    assert f"model: {n} steps; reach " in text, text
+    assert all(r["reach"] is None or 0 <= r["reach"] < 100 for r in recs)
+    study.main(["--seeds", "7", "--electrodes", "2", "--sweeps", "3", "--jobs", "1", "--compare", str(out)])
+    assert "0 steps differ" in capsys.readouterr().out  # the same draws give the same steps
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--seeds", "7-x"], "--seeds: '7-x' is not a seed"),
+    (["--seeds", "9-3"], "--seeds: '9-3'"),
+    (["--seeds", "-3"], "--seeds"),
+    (["--electrodes", "0"], "--electrodes 0: accepted 1 to 1000"),
+    (["--sweeps", "1"], "--sweeps 1: accepted 2 to 200"),
+    (["--jobs", "0"], "--jobs 0: accepted 1 or more"),
+    (["--compare", "/nonexistent/x.jsonl"], "--compare /nonexistent/x.jsonl: cannot read it"),
+])
+def test_bad_arguments_are_named_with_their_range(args, says):
+    with pytest.raises(SystemExit) as e:
+        study.main(args)
+    assert says in str(e.value), e.value
