@@ -62,12 +62,11 @@ SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
-# a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when it
-# asks at Q_k for less than half (skin_model._law_fall): gel on a pulse at the duration ceiling asks for
-# Q_k/5 ... Q_k/9 (before, the model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's
-# study; session 27)
+# a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when the
+# paper's step at the reading asks for less than half of Q_k (skin_model._law_fall): gel on a pulse at the
+# duration ceiling asks for Q_k/5 ... Q_k/9 (before, the model-free step there: the first corrected pulse felt
+# +45 ... +131 %, issue 13's study; sessions 27-28)
 FAST_MODEL_FALL_LOG2 = const(4)
-_L_FALL_ASK = const(0x10000)  # log2 of that half (Q.16): 1 octave
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
 # taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
 FAST_MODEL_STEP_LOG2 = const(3)
@@ -825,17 +824,21 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
 
 @micropython.viper
 def _law_fall(vv, lq_k: int) -> int:
-    """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured):
-    when the law on the model asks at Q_k for less than half of Q_k (_L_FALL_ASK) and at
-    Q_k/4 still for less than Q_k/4, its root from Q_k / 2**FAST_MODEL_FALL_LOG2 up to
-    Q_k/4; else NOROOT (also if none). Gel on a pulse at the duration ceiling asks for
-    Q_k/5 ... Q_k/9. On electrodes whose mQ is nearly flat along the mE curve the law has a
-    second fixed point far below a pulse settled at the ceiling, and a modest fall asked
-    at Q_k (1/8, one Rp read 15 % low: review of session 27) found it and moved the
-    settled pulse there for good (x 5 ... 8 in current, nothing felt); less than half is
-    asked only by a reading of less than about half the Rp: gel on, or a read that wild
-    (x 0.4 and below moves such a pulse there too; docs/controller.md). Each evaluation is
-    a unit of the jump's work."""
+    """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured),
+    for when the paper's step at the reading asks for less than half of Q_k (_law_q's
+    `fall`): when the law on the model asks for less at Q_k and at Q_k/4 still for less
+    than Q_k/4, its root from Q_k / 2**FAST_MODEL_FALL_LOG2 up to Q_k/4; else NOROOT (also
+    if none). Gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9. On electrodes
+    whose mQ is nearly flat along the mE curve the law has a second fixed point far below a
+    pulse settled at the ceiling, and a modest fall asked at Q_k (1/8, one Rp read 15 % low:
+    review of session 27) found it and moved the settled pulse there for good (x 5 ... 8 in
+    current, nothing felt); the paper's step asks for less than half only on a reading of
+    less than about half the Rp: gel on, or a read that wild (docs/controller.md). The gate
+    is the paper's step, not the model's ask at Q_k: at the ceiling the mE curve's pulse of
+    charge Q_k is longer than the pulse read, and after gel on the model asked there for a
+    fall of only 0.73 octave while the paper's step asked for Q_k x 0.41 (validation seed
+    31 electrode 28: no answer, the model-free step, then +38 % felt; session 28). Each evaluation is a unit of the jump's
+    work."""
     v = ptr32(vv)
     root = _root
     x = lq_k
@@ -845,7 +848,7 @@ def _law_fall(vv, lq_k: int) -> int:
             return NOROOT
         v[_V_WORK] += 1
         g = int(root(vv, _K_LAW, x, x - 1, 0))
-        if g == NOROOT or g >= (0 - _L_FALL_ASK if x == lq_k else 0):
+        if g == NOROOT or g >= 0:
             return NOROOT
         if x != lq_k:
             break
@@ -855,11 +858,12 @@ def _law_fall(vv, lq_k: int) -> int:
 
 
 @micropython.viper
-def _law_q(vv, lq_k: int) -> int:
+def _law_q(vv, lq_k: int, fall: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
-    4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else a
-    fall past Q_k/4, _law_fall), else on the line at t_max; NOROOT if none. Machine code
+    4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else, if
+    fall (the paper's step asks for less than half of Q_k), a fall past Q_k/4, _law_fall),
+    else on the line at t_max; NOROOT if none. Machine code
     with the values in vv: no attribute lookup (fixmath.exp2q inline)."""
     v = ptr32(vv)
     root = _root  # (one global lookup a call, not one a search)
@@ -905,7 +909,7 @@ def _law_q(vv, lq_k: int) -> int:
             n = int(root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT and v[_V_CUT] == 0:
                 n = int(_law_near(vv, lq_k, hi))
-                if n == NOROOT and v[_V_CUT] == 0:
+                if n == NOROOT and v[_V_CUT] == 0 and fall:
                     n = int(_law_fall(vv, lq_k))
             if n == NOROOT:
                 return NOROOT
@@ -914,7 +918,7 @@ def _law_q(vv, lq_k: int) -> int:
         n = int(root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
         if n == NOROOT and v[_V_CUT] == 0:
             n = int(_law_near(vv, lq_k, hi))
-            if n == NOROOT and v[_V_CUT] == 0:
+            if n == NOROOT and v[_V_CUT] == 0 and fall:
                 n = int(_law_fall(vv, lq_k))
         if n == NOROOT:
             return NOROOT
@@ -1103,6 +1107,7 @@ class SkinModel:
         # the last jump saw a step of the skin on the pulse before and gave no answer: both pulses
         # are on the skin as it is now (rule 4's refit applies to them)
         bstep = 1 if (p0rp > 0 and v[_V_SNA] != 0 and v[_V_SNA_I] == pk[_KB_I] and v[_V_SNA_T] == pk[_KB_T]) else 0
+        fall = 1 if qf < (q_k << 3) else 0  # the paper's step asks for less than half of Q_k (_law_fall)
         v[_V_SNA] = 0
         j = 3  # the log2 words to compute (below): from j = 0 the pulse before's too
         if p0rp > 0:
@@ -1226,7 +1231,7 @@ class SkinModel:
             unchk = 0
             ls = v[_V_LS] - _V_BIAS
             lc = v[_V_LC] - _V_BIAS
-            q16 = int(_law_q(vv, v[_V_LQK]))
+            q16 = int(_law_q(vv, v[_V_LQK], fall))
             if q16 == NOROOT:
                 return -2 if v[_V_CUT] else -1
         else:
@@ -1286,7 +1291,7 @@ class SkinModel:
             v[_V_ACH_W] = v[_V_WORK] - w0
             v[_V_ACH_OK] = 1
             lq_k = v[_V_LQK]
-            q16 = int(_law_q(vv, lq_k))
+            q16 = int(_law_q(vv, lq_k, fall))
             lc_set = int(self.lc_set) if q16 == NOROOT else lc
             if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
                 # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
@@ -1303,7 +1308,7 @@ class SkinModel:
                 v[_V_ACH_LC] = lc + _V_BIAS
                 v[_V_ACH_W] = v[_V_WORK] - w0
                 v[_V_ACH_OK] = 1
-                q16 = int(_law_q(vv, lq_k))
+                q16 = int(_law_q(vv, lq_k, fall))
             if q16 == NOROOT:
                 return -2 if v[_V_CUT] else -1
             if q16 > (q_k << 4) and fresh and p0rp > 0:
@@ -1334,7 +1339,7 @@ class SkinModel:
                         lc = lc1 + la
                         v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
                         v[_V_LC] = lc + _V_BIAS
-                        q2 = int(_law_q(vv, lq_k))
+                        q2 = int(_law_q(vv, lq_k, fall))
                         if q2 != NOROOT and q2 < q16:
                             q16 = q2
                         else:
