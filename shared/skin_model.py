@@ -62,11 +62,12 @@ SKIN_CP_MAX_PF = const(2000000)  # 2 uF
 FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
-# a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when the
-# paper's step at the reading asks for less than half of Q_k (skin_model._law_fall): gel on a pulse at the
-# duration ceiling asks for Q_k/5 ... Q_k/9 (before, the model-free step there: the first corrected pulse felt
-# +45 ... +131 %, issue 13's study; sessions 27-28)
+# a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when it
+# asks at Q_k for less than half (skin_model._law_fall), or when the paper's step asks for less than half on
+# two readings in a row: gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9 (before, the
+# model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's study; sessions 27-28)
 FAST_MODEL_FALL_LOG2 = const(4)
+_L_FALL_ASK = const(0x10000)  # log2 of that half (Q.16): 1 octave
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
 # taken to explain it, is a step of the skin: the next jump is a fresh one (rules 3 and 6)
 FAST_MODEL_STEP_LOG2 = const(3)
@@ -201,7 +202,10 @@ _V_TPC = const(51)  # log2 Cp (+ _V_BIAS) the last tau read gave (its anchor), 0
 _V_TCHK = const(52)  # SkinModel.tau_checked: 1 the calibration pulse's tau agreed with the fitted model (rule 7 on
 # until the next calibration), 0 not (tau not used)
 _V_TSTR = const(53)  # tau reads that disagreed with the one before, less those that agreed (>= 0)
-_V_N = const(54)
+_V_BFA = const(54)  # 1: the last jump's paper's step asked for less than half of Q_k and it gave no answer;
+_V_BFA_I = const(55)  # that pulse's I and T (_law_fall: a second such reading in a row confirms the fall)
+_V_BFA_T = const(56)
+_V_N = const(57)
 _V_BIAS = const(0x10000000)
 
 
@@ -823,22 +827,27 @@ def _law_near(vv, lq_k: int, hi: int) -> int:
 
 
 @micropython.viper
-def _law_fall(vv, lq_k: int) -> int:
-    """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured),
-    for when the paper's step at the reading asks for less than half of Q_k (_law_q's
-    `fall`): when the law on the model asks for less at Q_k and at Q_k/4 still for less
-    than Q_k/4, its root from Q_k / 2**FAST_MODEL_FALL_LOG2 up to Q_k/4; else NOROOT (also
-    if none). Gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9. On electrodes
-    whose mQ is nearly flat along the mE curve the law has a second fixed point far below a
-    pulse settled at the ceiling, and a modest fall asked at Q_k (1/8, one Rp read 15 % low:
-    review of session 27) found it and moved the settled pulse there for good (x 5 ... 8 in
-    current, nothing felt); the paper's step asks for less than half only on a reading of
-    less than about half the Rp: gel on, or a read that wild (docs/controller.md). The gate
-    is the paper's step, not the model's ask at Q_k: at the ceiling the mE curve's pulse of
-    charge Q_k is longer than the pulse read, and after gel on the model asked there for a
-    fall of only 0.73 octave while the paper's step asked for Q_k x 0.41 (validation seed
-    31 electrode 28: no answer, the model-free step, then +38 % felt; session 28). Each evaluation is a unit of the jump's
-    work."""
+def _law_fall(vv, lq_k: int, ask: int) -> int:
+    """A fall past the search's lower end, Q_k/4 (lq_k: log2 of the charge just measured):
+    when the law on the model asks at Q_k for less than Q_k x 2**(ask / 2**16) and at Q_k/4
+    still for less than Q_k/4, its root from Q_k / 2**FAST_MODEL_FALL_LOG2 up to Q_k/4; else
+    NOROOT (also if none). ask (SkinModel.jump): -_L_FALL_ASK, less than half; 0, any fall,
+    on the reading after one on which the paper's step asked for less than half and the
+    model gave no answer. Gel on a pulse at the duration ceiling asks for
+    Q_k/5 ... Q_k/9. On electrodes whose mQ is nearly flat along the mE curve the law has a
+    second fixed point far below a pulse settled at the ceiling, and a modest fall asked at
+    Q_k (1/8, one Rp read 15 % low: review of session 27) found it and moved the settled
+    pulse there for good (x 5 ... 8 in current, nothing felt); less than half is asked only
+    by a reading of less than about half the Rp: gel on, or a read that wild (x 0.4 and
+    below moves such a pulse there too; docs/controller.md). At the ceiling the mE curve's
+    pulse of charge Q_k is longer than the pulse read, so after gel on the model can ask
+    there for less than the reading does: validation seed 31 electrode 28 asked -0.73
+    octave where the paper's step asked Q_k x 0.41, the model-free steps went, +50 % and
+    then +38 % felt. Gating on the paper's step at one reading instead (session 28's first
+    version) met it but let one read of about x 0.45 take the fall (its review: a pulse
+    settled at the ceiling moved for good on 29 of 31 electrodes, and after a press back
+    pulses felt up to +11.7 %); the model anchored on the next reading confirms it. Each
+    evaluation is a unit of the jump's work."""
     v = ptr32(vv)
     root = _root
     x = lq_k
@@ -848,7 +857,7 @@ def _law_fall(vv, lq_k: int) -> int:
             return NOROOT
         v[_V_WORK] += 1
         g = int(root(vv, _K_LAW, x, x - 1, 0))
-        if g == NOROOT or g >= 0:
+        if g == NOROOT or g >= (ask if x == lq_k else 0):
             return NOROOT
         if x != lq_k:
             break
@@ -858,7 +867,7 @@ def _law_fall(vv, lq_k: int) -> int:
 
 
 @micropython.viper
-def _law_q(vv, lq_k: int, fall: int) -> int:
+def _law_q(vv, lq_k: int, ask: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
     4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else, if
@@ -909,8 +918,8 @@ def _law_q(vv, lq_k: int, fall: int) -> int:
             n = int(root(vv, kind, lq_k - 0x20000, hi, lq_k))  # guess: the charge just delivered
             if n == NOROOT and v[_V_CUT] == 0:
                 n = int(_law_near(vv, lq_k, hi))
-                if n == NOROOT and v[_V_CUT] == 0 and fall:
-                    n = int(_law_fall(vv, lq_k))
+                if n == NOROOT and v[_V_CUT] == 0:
+                    n = int(_law_fall(vv, lq_k, ask))
             if n == NOROOT:
                 return NOROOT
             n += 0x40000
@@ -918,8 +927,8 @@ def _law_q(vv, lq_k: int, fall: int) -> int:
         n = int(root(vv, _K_LAW, lq_k - 0x20000, hi, lq_k))
         if n == NOROOT and v[_V_CUT] == 0:
             n = int(_law_near(vv, lq_k, hi))
-            if n == NOROOT and v[_V_CUT] == 0 and fall:
-                n = int(_law_fall(vv, lq_k))
+            if n == NOROOT and v[_V_CUT] == 0:
+                n = int(_law_fall(vv, lq_k, ask))
         if n == NOROOT:
             return NOROOT
         n += 0x40000
@@ -1004,6 +1013,7 @@ class SkinModel:
         v[_V_ACH_OK] = 0  # the header's model, as set; review of session 25: 14 of 300 pulses of a second arm differed)
         v[_V_RFT] = 0
         v[_V_SNA] = 0
+        v[_V_BFA] = 0
         v[_V_TLC] = 0
         v[_V_TPC] = 0  # (the skin of an earlier arm's taus may not be this one's)
         v[_V_TSTR] = 0
@@ -1107,7 +1117,19 @@ class SkinModel:
         # the last jump saw a step of the skin on the pulse before and gave no answer: both pulses
         # are on the skin as it is now (rule 4's refit applies to them)
         bstep = 1 if (p0rp > 0 and v[_V_SNA] != 0 and v[_V_SNA_I] == pk[_KB_I] and v[_V_SNA_T] == pk[_KB_T]) else 0
-        fall = 1 if qf < (q_k << 3) else 0  # the paper's step asks for less than half of Q_k (_law_fall)
+        # _law_fall's ask at Q_k: the law on the model asks for less than half of Q_k; or for less at all on the
+        # reading after one on which the paper's step asked for less than half and the model gave no answer (the
+        # model anchored on this second reading confirms the fall: one bad read of about half the Rp must not take
+        # it, and after one the model on the honest reading asks for more)
+        ask = 0 - _L_FALL_ASK
+        if p0rp > 0 and v[_V_BFA] != 0 and v[_V_BFA_I] == pk[_KB_I] and v[_V_BFA_T] == pk[_KB_T]:
+            ask = 0
+        if qf < (q_k << 3):
+            v[_V_BFA] = 1  # (cleared below when the jump gives an answer)
+            v[_V_BFA_I] = i_k
+            v[_V_BFA_T] = t_k
+        else:
+            v[_V_BFA] = 0
         v[_V_SNA] = 0
         j = 3  # the log2 words to compute (below): from j = 0 the pulse before's too
         if p0rp > 0:
@@ -1231,7 +1253,7 @@ class SkinModel:
             unchk = 0
             ls = v[_V_LS] - _V_BIAS
             lc = v[_V_LC] - _V_BIAS
-            q16 = int(_law_q(vv, v[_V_LQK], fall))
+            q16 = int(_law_q(vv, v[_V_LQK], ask))
             if q16 == NOROOT:
                 return -2 if v[_V_CUT] else -1
         else:
@@ -1291,7 +1313,7 @@ class SkinModel:
             v[_V_ACH_W] = v[_V_WORK] - w0
             v[_V_ACH_OK] = 1
             lq_k = v[_V_LQK]
-            q16 = int(_law_q(vv, lq_k, fall))
+            q16 = int(_law_q(vv, lq_k, ask))
             lc_set = int(self.lc_set) if q16 == NOROOT else lc
             if q16 == NOROOT and v[_V_CUT] == 0 and lc > lc_set:
                 # no fixed point on the model refitted to a larger Cp (its gain along the mE curve
@@ -1308,7 +1330,7 @@ class SkinModel:
                 v[_V_ACH_LC] = lc + _V_BIAS
                 v[_V_ACH_W] = v[_V_WORK] - w0
                 v[_V_ACH_OK] = 1
-                q16 = int(_law_q(vv, lq_k, fall))
+                q16 = int(_law_q(vv, lq_k, ask))
             if q16 == NOROOT:
                 return -2 if v[_V_CUT] else -1
             if q16 > (q_k << 4) and fresh and p0rp > 0:
@@ -1339,7 +1361,7 @@ class SkinModel:
                         lc = lc1 + la
                         v[_V_LS] = ls + _V_BIAS  # (self.ls, self.lc)
                         v[_V_LC] = lc + _V_BIAS
-                        q2 = int(_law_q(vv, lq_k, fall))
+                        q2 = int(_law_q(vv, lq_k, ask))
                         if q2 != NOROOT and q2 < q16:
                             q16 = q2
                         else:
@@ -1390,6 +1412,7 @@ class SkinModel:
         v[_V_PRED] = rp  # (self.predicted_rp_ohm, self.jumped)
         v[_V_JUMPED] = 1
         v[_V_SNA] = 0
+        v[_V_BFA] = 0
         n = pk[_KC_MJ]  # (c.model_jumps)
         if n < _SAT30:
             pk[_KC_MJ] = n + 1

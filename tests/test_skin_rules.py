@@ -141,20 +141,23 @@ def test_gel_on_a_pulse_at_the_ceiling_is_met_by_the_first_corrected_pulse(seed,
     assert reach[0] is not None and reach[0] <= 2 and surge[0] <= 0.05, (reach, surge)
 
 
-def test_gel_on_at_the_ceiling_whose_model_asks_for_a_modest_fall_is_met_on_the_first_corrected_pulse():
+def test_gel_on_at_the_ceiling_whose_model_asks_for_a_modest_fall_does_not_surge():
     """Validation seed 31, electrode 28 (30 sweeps, the DAC gain known by selftest --scope): gel on
     a pulse settled at the ceiling (461 uA x 7990 us). The paper's step at the reading asks for
     Q_k x 0.41, but the model on the mE curve asked at Q_k for a fall of only 0.73 octave (the
     curve's pulse of that charge is longer than the ceiling pulse read), so the fall past Q_k/4
-    was not searched (session 27's gate: the model's ask below 1/2), the jump had no answer twice,
-    and the model-free steps landed +50 % on the first corrected pulse and +37.7 % on the second
-    (a surge). Now the gate is the paper's step: the first corrected pulse is within 5 %, and no
-    pulse after it is felt more than 5 % above target."""
+    was not searched, the model-free step went (+50 % felt, the first corrected pulse), and on
+    the next reading the model asked for -0.5 octave, again not searched: the model-free secant
+    sent +37.7 % (a surge). Now the reading after one on which the paper's step asked for less
+    than half with no model answer confirms the fall (session 28): the second corrected pulse
+    is within 5 % and none after it is felt more than 5 % above target. (Session 28's first
+    version, gated on the paper's step at one reading, met the first corrected pulse too, but
+    one read x 0.45 then took the fall: its review.)"""
     rows, target = study_run(31, 28, sweeps=30, scope=True)
     a = bench.STUDY_EVENTS[0].pulse
     assert rows[a - 1, 2] >= 7000, rows[a - 1]  # at the ceiling before the gel
     assert (rows[a, 4] - target) / target > 1.0, rows[a]
-    rel = (rows[a + 1:a + 100, 4] - target) / target
+    rel = (rows[a + 2:a + 100, 4] - target) / target
     assert abs(rel[0]) <= 0.05, rows[a - 1:a + 4]
     assert rel.max() <= 0.05, (rel.max(), rows[a - 1:a + 4])
 
@@ -166,9 +169,10 @@ def test_one_low_read_does_not_move_a_pulse_settled_at_the_ceiling_for_good(monk
     is nearly flat along the mE curve and the law has a second fixed point far below the pulse
     settled at the ceiling; one Rp read 15 % low (pulse 40, no step of the skin) found it and the
     pulse stayed there, x 5 ... 8 in current (13/5: 357 uA x 7978 us -> 2399 uA x 174 us). Now the
-    fall is searched only when the paper's step at the reading asks for less than half (session
-    27: the model's own ask at Q_k): after such a read the current moves at most x 2 and the pulse
-    before the gel (pulse 49) is back within 10 % (all five fail with the 1/8 version). Not here: 11/28 with a read x 0.5, which moves the pulse
+    fall is searched only when the law asks at Q_k for less than half (or on the reading after a
+    big fall the model did not answer, when the model anchored on it still asks for less): after
+    such a read the current moves at most x 2 and the pulse before the gel (pulse 49) is back
+    within 10 % (all five fail with the 1/8 version). Not here: 11/28 with a read x 0.5, which moves the pulse
     to the other fixed point on main too (the model-free step down, then the law's rise)."""
     real = sc.Controller.update
     n = [0]
