@@ -110,7 +110,8 @@ def summary(recs) -> list[str]:
                    f"gel on, current > 5 % above its range: {sum(r['over_i'] > 0.05 for r in gel)}")
         for r in surges:
             out.append(f"  surge {r['surge']:+.1%}: seed {r['seed']} electrode {r['electrode']}, {r['step']}, "
-                       f"pulse {r['worst_pulse']}{'' if r['trusted'] else ' (fit not trusted: no model)'}")
+                       f"pulse {r['worst_pulse']}"
+                       f"{' (its fit is not trusted: the model-free step)' if mode == MODES[0] and not r['trusted'] else ''}")
     return out
 
 
