@@ -17,7 +17,7 @@ are left out, as in `controllers.py --study`. The summary gives per mode:
 
 --out keeps one JSON line per step and mode, written as each seed ends (an interrupted run keeps the
 seeds that ended); --compare reads another such file and lists the steps whose reach or surge differ.
-Figures and commands: docs/performance.md ("The study, as a command").
+Figures and commands: docs/performance.md ("The study as a command; ...").
 """
 
 from __future__ import annotations

@@ -63,9 +63,10 @@ FAST_MODEL_RAISE_LOG2 = const(4)
 # a fresh rise into the duration ceiling whose predicted Rp rise exceeds Rp / 2**this is halved
 FAST_MODEL_RP_RISE_LOG2 = const(3)
 # a fall the law on the model (rule 2) asks for past Q_k/4 is searched on down to Q_k / 2**this when it
-# asks at Q_k for less than half (skin_model._law_fall), or when the paper's step asks for less than half on
-# two readings in a row: gel on a pulse at the duration ceiling asks for Q_k/5 ... Q_k/9 (before, the
-# model-free step there: the first corrected pulse felt +45 ... +131 %, issue 13's study; sessions 27-28)
+# asks at Q_k for less than half (skin_model._law_fall), or for any fall on the reading after one on which the
+# paper's step asked for less than half and the model gave no answer: gel on a pulse at the duration ceiling
+# asks for Q_k/5 ... Q_k/9 (before, the model-free step there: the first corrected pulse felt +45 ... +131 %,
+# issue 13's study; sessions 27-28)
 FAST_MODEL_FALL_LOG2 = const(4)
 _L_FALL_ASK = const(0x10000)  # log2 of that half (Q.16): 1 octave
 # a reading that misses a checked model's prediction by more than Rp / 2**this, with no refit
@@ -203,7 +204,7 @@ _V_TCHK = const(52)  # SkinModel.tau_checked: 1 the calibration pulse's tau agre
 # until the next calibration), 0 not (tau not used)
 _V_TSTR = const(53)  # tau reads that disagreed with the one before, less those that agreed (>= 0)
 _V_BFA = const(54)  # 1: the last jump's paper's step asked for less than half of Q_k and it gave no answer;
-_V_BFA_I = const(55)  # that pulse's I and T (_law_fall: a second such reading in a row confirms the fall)
+_V_BFA_I = const(55)  # that pulse's I and T (on the next reading from it, _law_fall's ask is any fall)
 _V_BFA_T = const(56)
 _V_N = const(57)
 _V_BIAS = const(0x10000000)
@@ -870,9 +871,9 @@ def _law_fall(vv, lq_k: int, ask: int) -> int:
 def _law_q(vv, lq_k: int, ask: int) -> int:
     """The law's charge (1/16 pC) on the model skin in vv (SkinModel.v), for the pulse just
     measured of log2 charge lq_k: on the mE curve up to t_max (searched from Q_k/4 to
-    4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else, if
-    fall (the paper's step asks for less than half of Q_k), a fall past Q_k/4, _law_fall),
-    else on the line at t_max; NOROOT if none. Machine code
+    4 Q_k, from Q_k on; with no root there, a rise to the nearest root above Q_k, else a
+    fall past Q_k/4 that the model asks for at Q_k below ask, _law_fall), else on the line
+    at t_max; NOROOT if none. Machine code
     with the values in vv: no attribute lookup (fixmath.exp2q inline)."""
     v = ptr32(vv)
     root = _root  # (one global lookup a call, not one a search)
