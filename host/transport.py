@@ -188,11 +188,20 @@ class SimTransport(Transport):
             return None
         if r is None:
             self.q.put(None)
-            msg = f"the simulated device stopped (exit code {self.p.returncode})"
-            if self.p.returncode == 0 and not self.error:
-                msg += ": it ran its frames (the scenario's length from the session's start, or frames=N of the URL)"
-            raise Disconnected(msg + (f": {self.error}" if self.error else ""))
+            raise Disconnected(self._stopped())
         return r
+
+    def _stopped(self) -> str:
+        """Why the simulated device is gone: its exit code and its first stderr line, whichever of a read
+        or a write noticed first (the reader thread has then seen the process end: it waited for it)."""
+        self.reader.join(timeout=5)  # the pump ends right after the process: its exit code and stderr
+        rc = self.p.poll()
+        if rc is None:
+            return "the simulated device closed its input" + (f": {self.error}" if self.error else "")
+        msg = f"the simulated device stopped (exit code {rc})"
+        if rc == 0 and not self.error:
+            msg += ": it ran its frames (the scenario's length from the session's start, or frames=N of the URL)"
+        return msg + (f": {self.error}" if self.error else "")
 
     def write(self, report: bytes) -> None:
         self._send(b"\xa5\x5a" + bytes(report))
@@ -207,8 +216,8 @@ class SimTransport(Transport):
         try:
             self.p.stdin.write(frame)
             self.p.stdin.flush()
-        except (BrokenPipeError, OSError):
-            raise Disconnected("the simulated device stopped") from None
+        except (BrokenPipeError, OSError):  # it exited between two reads: say why, as a read would
+            raise Disconnected(self._stopped()) from None
 
     def close(self) -> None:
         try:

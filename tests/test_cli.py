@@ -153,6 +153,22 @@ def test_calibrate_from_json_then_arm(tmp_path):
     assert p.returncode == 0 and "calibrate: ok" in p.stdout and "x* -1650 ohm" in p.stdout
 
 
+def test_a_write_after_the_simulated_device_ran_its_frames_says_why_it_stopped():
+    # the CI race of session 29: the device ended its frames between the host's last read and its
+    # next write (a keep-alive), and the write's broken pipe lost the exit code a read would give
+    import hid_protocol as hp
+    from steadytouch.transport import Disconnected, open_transport
+
+    t = open_transport("sim://steady?channels=1&realtime=0&frames=3")
+    try:
+        assert t.p.wait(timeout=60) == 0  # ran its 3 frames, exited
+        with pytest.raises(Disconnected) as e:
+            t.write(bytes(hp.REPORT_LEN))
+        assert "the simulated device stopped (exit code 0): it ran its frames" in str(e.value)
+    finally:
+        t.close()
+
+
 def test_bad_device_url_is_one_line():
     p = run("info", "--device", "tcp://nowhere")
     assert p.returncode == 2 and p.stderr.startswith("steadytouch: unknown device") and "Traceback" not in p.stderr
