@@ -350,6 +350,7 @@ class Supervisor:
 
 SUPERVISOR = False  # --supervisor: bench.run's default for `supervisor`
 TAU = True  # --no-tau: MODE_FAST's model sent without the tau gain the sweeps measured (rule 7 off)
+SWEEPS_UPTO = 0  # --sweeps-upto N: a fit not trusted for its shape's spread gets the sweeps skin.sweeps_for_trust asks, to N
 
 
 def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board="exact", sweeps=1,
@@ -381,20 +382,28 @@ def run(mode, events, n, i0=1000, t0=1000, noise=0.0, seed=1, h_start=1.0, board
         if sweeps > 1:
             pts = skin.sweep_wide(i0, t0)
             taus = []  # (I, T, the decay's log2 tau read) of each sweep pulse: rule 7's gain (skin.tau_gain)
-            if meter:
-                sw = []
-                for _ in range(sweeps):
-                    row = []
-                    for i, t in pts:
-                        row.append((i, t, meter.pulse(i, t)[1]))
-                        taus.append((i, t, meter.ltau_q16))
-                    sw.append(row)
-            else:
-                sw = [[(i, t, round(_rp_on(e, i, t) * (1 + noise * rng.normal()))) for i, t in pts]
-                      for _ in range(sweeps)]
+            sw = []
+
+            def more(n):  # n more sweeps of the same pulses on this skin
+                for _ in range(n):
+                    if meter:
+                        row = []
+                        for i, t in pts:
+                            row.append((i, t, meter.pulse(i, t)[1]))
+                            taus.append((i, t, meter.ltau_q16))
+                        sw.append(row)
+                    else:
+                        sw.append([(i, t, round(_rp_on(e, i, t) * (1 + noise * rng.normal()))) for i, t in pts])
+
+            more(sweeps)
             f = skin.fit_sweeps(sw, i0, t0, LIMITS[3])
+            # the user's rule (`steadytouch skin` says it): record the sweeps the fit asks for and fit again, up to
+            # SWEEPS_UPTO in all (each ask is at least 5 more: it ends)
+            while SWEEPS_UPTO and (want := skin.sweeps_for_trust(f, SWEEPS_UPTO)) is not None:
+                more(want - len(sw))
+                f = skin.fit_sweeps(sw, i0, t0, LIMITS[3])
             tg = skin.tau_gain(f.model, taus) if f.trusted and TAU else None
-            FIT_INFO.update(trusted=f.trusted, shape_sd=f.shape_sd, misfit=f.misfit, why=f.why,
+            FIT_INFO.update(trusted=f.trusted, shape_sd=f.shape_sd, misfit=f.misfit, why=f.why, sweeps=len(sw),
                             tau=tg.trusted if tg else False, tau_why=tg.why if tg else "")
             c.set_skin(*f.args(), tg.q16 if tg else sc.SKIN_TAU_OFF)
             if meter:  # ARM after SET_SKIN, as on the device: calibrate on a pulse read now (told its tau: rule 7's
@@ -714,7 +723,7 @@ def study(n_electrodes, board, sweeps, correct, seed=7, tol=0.01, i0=1000, adc_u
                 trust.append(FIT_INFO.get("trusted", False))
             runs[name] = (rows, target, FIT_INFO.get("measured"))
             true_rps[name] = FIT_INFO.get("true_rp")
-            fits[name] = (bool(FIT_INFO.get("trusted", False)), bool(FIT_INFO.get("tau", False)))
+            fits[name] = (bool(FIT_INFO.get("trusted", False)), bool(FIT_INFO.get("tau", False)), FIT_INFO.get("sweeps"))
         ref_rows = runs["fast, no model"][0]
         starts = [x.pulse for x in STUDY_EVENTS] + [STUDY_N]
         for j, (a, b) in enumerate(zip(starts, starts[1:])):
@@ -751,7 +760,7 @@ def step_record(seed, k, j, a, b, name, rows, target, reach, seen, surge, fit):
     hi = max(i[a - 1], float(np.median(i[b - 20:b])))
     return {"seed": seed, "electrode": k, "step": STEP_NAMES[j], "mode": name, "reach": reach, "seen": seen,
             "surge": float(surge), "first": None if first is None else float(first),
-            "over_i": float(max(0.0, (i[a:b].max() - hi) / hi)), "trusted": fit[0], "tau": fit[1],
+            "over_i": float(max(0.0, (i[a:b].max() - hi) / hi)), "trusted": fit[0], "tau": fit[1], "sweeps": fit[2],
             "worst_pulse": _worst(mq[a + 2:b], target)}
 
 

@@ -1,6 +1,6 @@
 """Issue 13's study over many seeds, in parallel, with one summary: MODE_FAST on unseen electrodes.
 
-Run: .venv/bin/python bench/study.py [--seeds 7,11-20] [--electrodes 30] [--sweeps 30]
+Run: .venv/bin/python bench/study.py [--seeds 7,11-20] [--electrodes 30] [--sweeps 30] [--sweeps-upto 60]
      [--supervisor] [--scope] [--no-tau] [--jobs N] [--out steps.jsonl] [--compare other.jsonl]
 
 Each seed draws its electrodes (bench/controllers.py's random_electrode) and runs the study's four
@@ -13,7 +13,9 @@ are left out, as in `controllers.py --study`. The summary gives per mode:
   percentile <= 2); in brackets the same for the mQ the controller measures;
 - surges: steps felt more than 5 % above target after the first corrected pulse (the goal: none);
 - the first corrected pulse felt more than 15 % above target (gel on: the law's fall);
-- gel-on steps whose current went more than 5 % above the range between its value before and after.
+- gel-on steps whose current went more than 5 % above the range between its value before and after;
+- the fits: how many were trusted, and with --sweeps-upto how many took more sweeps (the user records the
+  sweeps `steadytouch skin` asks for when the fit's shape is not known to 1 %, host/skin.py sweeps_for_trust).
 
 --out keeps one JSON line per step and mode, written as each seed ends (an interrupted run keeps the
 seeds that ended); --compare reads another such file and lists the steps whose reach or surge differ.
@@ -73,16 +75,16 @@ def seeds_of(text: str) -> list[int]:
 
 
 def _one(args):
-    seed, n, sweeps, supervisor, scope, tau = args
+    seed, n, sweeps, supervisor, scope, tau, upto = args
     bench = _bench()
-    was = bench.SUPERVISOR, bench.TAU
-    bench.SUPERVISOR, bench.TAU = supervisor, tau
+    was = bench.SUPERVISOR, bench.TAU, bench.SWEEPS_UPTO
+    bench.SUPERVISOR, bench.TAU, bench.SWEEPS_UPTO = supervisor, tau, upto
     recs: list = []
     t0 = time.monotonic()
     try:
         bench.study(n, "real", sweeps, True, seed=seed, modes=MODES, records=recs, scope=scope)
     finally:
-        bench.SUPERVISOR, bench.TAU = was
+        bench.SUPERVISOR, bench.TAU, bench.SWEEPS_UPTO = was
     return seed, recs, time.monotonic() - t0
 
 
@@ -108,6 +110,11 @@ def summary(recs) -> list[str]:
                    f"[measured {_reach([r['seen'] for r in rs])}]; surges > 5 %: {len(surges)}{listed}"
                    f"; worst {max(r['surge'] for r in rs):+.1%}; first corrected > +15 %: {len(first)}; "
                    f"gel on, current > 5 % above its range: {sum(r['over_i'] > 0.05 for r in gel)}")
+        if mode == MODES[0]:
+            fits = {(r["seed"], r["electrode"]): r for r in rs}.values()
+            extra = [r["sweeps"] for r in fits if (r.get("sweeps") or 0) > min(f.get("sweeps") or 0 for f in fits)]
+            out.append(f"  fits: {sum(r['trusted'] for r in fits)} of {len(fits)} electrodes trusted"
+                       + (f"; {len(extra)} took more sweeps (up to {max(extra)})" if extra else ""))
         for r in surges:
             out.append(f"  surge {r['surge']:+.1%}: seed {r['seed']} electrode {r['electrode']}, {r['step']}, "
                        f"pulse {r['worst_pulse']}"
@@ -134,6 +141,9 @@ def main(argv=None):
     ap.add_argument("--seeds", default=STUDY_SEEDS, help=f"seeds and ranges (default {STUDY_SEEDS}; 21-31: validation)")
     ap.add_argument("--electrodes", type=int, default=30, help="electrodes a seed (default 30)")
     ap.add_argument("--sweeps", type=int, default=30, help="calibration sweeps averaged by the fit (default 30)")
+    ap.add_argument("--sweeps-upto", type=int, default=0, metavar="N",
+                    help="a fit not trusted for its shape's spread gets the sweeps `steadytouch skin` asks for, up to N "
+                         "in all (default 0: the --sweeps alone)")
     ap.add_argument("--supervisor", action="store_true", help="through the firmware's raise rule (firmware/stim.py)")
     ap.add_argument("--scope", action="store_true", help="the DAC gain known, as `selftest --scope` stores it")
     ap.add_argument("--no-tau", action="store_true", help="MODE_FAST's model without the tau gain (rule 7 off)")
@@ -146,6 +156,9 @@ def main(argv=None):
         raise SystemExit(f"study: --electrodes {a.electrodes}: accepted 1 to 1000")
     if not 2 <= a.sweeps <= 200:
         raise SystemExit(f"study: --sweeps {a.sweeps}: accepted 2 to 200 (the averaged fit needs 2 or more)")
+    if a.sweeps_upto and not a.sweeps < a.sweeps_upto <= 200:
+        raise SystemExit(f"study: --sweeps-upto {a.sweeps_upto}: accepted 0 (off) or more than --sweeps ({a.sweeps}) "
+                         "up to 200")
     if a.jobs < 1:
         raise SystemExit(f"study: --jobs {a.jobs}: accepted 1 or more")
     other = []
@@ -157,8 +170,9 @@ def main(argv=None):
     out = open(a.out, "w") if a.out else None
     recs = []
     t0 = time.monotonic()
-    jobs = [(s, a.electrodes, a.sweeps, a.supervisor, a.scope, not a.no_tau) for s in seeds]
-    print(f"study: seeds {a.seeds} x {a.electrodes} electrodes, {a.sweeps} sweeps, realistic board with the "
+    jobs = [(s, a.electrodes, a.sweeps, a.supervisor, a.scope, not a.no_tau, a.sweeps_upto) for s in seeds]
+    print(f"study: seeds {a.seeds} x {a.electrodes} electrodes, {a.sweeps} sweeps"
+          f"{f' (up to {a.sweeps_upto} where the fit asks)' if a.sweeps_upto else ''}, realistic board with the "
           f"self-test correction{' and the DAC gain (--scope)' if a.scope else ''}"
           f"{', through the supervisor' if a.supervisor else ''}{', tau off' if a.no_tau else ''}", flush=True)
     try:

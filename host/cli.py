@@ -895,9 +895,15 @@ def cmd_skin(a) -> int:
             f"worst misfit {m.worst_misfit:.3%}")
         if not f.trusted:
             say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
-            if f.shape_sd > skin.TRUST_SHAPE_SD and f.sweeps < skin.RECOMMENDED_SWEEPS:
-                say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): {skin.RECOMMENDED_SWEEPS} are recommended, "
-                    f"{f.sweeps} were given (docs/calibration.md)")
+            if f.shape_sd > skin.TRUST_SHAPE_SD:
+                if (n := skin.sweeps_for_trust(f)) is not None:
+                    say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): about {n} in all should bring "
+                        f"it within {skin.TRUST_SHAPE_SD:.0%}; record {n - f.sweeps} more of the same pulses on this "
+                        "electrode and fit them all again (docs/calibration.md)")
+                else:
+                    say(f"more sweeps would not help enough: it would take more than {skin.SWEEPS_MOST} to bring it "
+                        f"within {skin.TRUST_SHAPE_SD:.0%}; this electrode's Rp is read too noisily for a model "
+                        "(check the contact and the leads, docs/calibration.md)")
         args = f.args()
         tau = _skin_tau(a.file, f.model) if f.trusted else sc.SKIN_TAU_OFF
     else:

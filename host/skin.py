@@ -150,6 +150,24 @@ def operating_grid(i0_ua: int, t0_us: int, t_max_us: int = 8000):
     return np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
 
 
+SWEEPS_MOST = 60  # sweeps_for_trust asks for at most this many in all (660 pulses, 13.2 s at 50 Hz)
+
+
+def sweeps_for_trust(f: SweepFit, most: int = SWEEPS_MOST) -> int | None:
+    """How many sweeps in all should bring an untrusted fit's shape within TRUST_SHAPE_SD: its
+    standard error falls as 1/sqrt(n), so n x (sd / limit)**2, with a tenth more for the sd's own
+    scatter and at least 5 more than were given (fewer than 3 sweeps: RECOMMENDED_SWEEPS). None
+    when the fit is trusted, when it is refused for its misfit (more of the same pulses do not
+    change the model's form), or when more than `most` would be needed (an electrode read too
+    noisily for a model: MODE_FAST stays model-free)."""
+    if f.trusted or f.shape_sd <= TRUST_SHAPE_SD:
+        return None
+    if not math.isfinite(f.shape_sd):  # fewer than 3 sweeps: no spread to project from
+        return max(RECOMMENDED_SWEEPS, f.sweeps + 5)
+    n = max(f.sweeps + 5, math.ceil(f.sweeps * (f.shape_sd / TRUST_SHAPE_SD) ** 2 * 1.1))
+    return n if n <= most else None
+
+
 def fit_sweeps(sweeps, i0_ua: int, t0_us: int, t_max_us: int = 8000) -> SweepFit:
     """sweeps: a list of repeated sweeps, each a list of (i_ua, t_us, rp_ohm) over the
     same pulses. Fits the per-pulse mean; the uncertainty comes from fitting each sweep."""
