@@ -97,8 +97,11 @@ FAST_TAU_CAL_AGREE = const(0x1000)
 # noisier than on the sweeps (review of session 26: 0.2 octave of noise in the run only, +26 % felt) turns tau off
 # until the next calibration (a step of the skin is one disagreement, then its reads agree)
 FAST_TAU_STRIKES = const(3)
-_L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4), one that
-# moved it by less does not check a refitted Cp
+_L_MOVED = const(0x800)  # 1/32 octave (Q.16): a pulse that moved I by less does not check a refitted Cp
+_L_REFIT = const(0x2000)  # 1/8 octave (Q.16): a pulse that moved I by more may refit Cp (rule 4). The pair's
+# reads differ by 1-2 % on the realistic board between pulses of different T: on a move of 1/32 ... 1/8 that is
+# the refit's whole answer (review 2 of session 28: Cp 1.475 octave low on a move of 2.8 %, and a wild read
+# after it felt +49 %, twice)
 # the model's work per pulse (bounds Controller.update on the chip): a jump's root searches
 # may spend FAST_MODEL_WORK_MAX units, one per evaluation of the model and _ROOT_WORK per
 # search (its set-up costs about that many evaluations on the chip); a jump that runs out
@@ -1278,7 +1281,7 @@ class SkinModel:
                 if rft and adl <= _L_MOVED:
                     unchk = 1  # a pulse that hardly moved I does not check a refitted Cp (its pair may
                     # straddle a second step: review of session 18)
-                if am > (rp_ohm >> 9) and adl > _L_MOVED:
+                if am > (rp_ohm >> 9) and adl > _L_REFIT:
                     if int(self.refit_cp(FAST_MODEL_CP_ABOVE if big else 0x10000)):
                         v[_V_RFT] = 1
                     elif big:
@@ -1294,7 +1297,7 @@ class SkinModel:
                 dr = v[_V_NOW + _P_RLP] - v[_V_BEFORE + _P_RLP]
                 if (dr if dr >= 0 else 0 - dr) - adl - (dt if dt >= 0 else 0 - dt) > _L_STEP:
                     step = 1
-                elif bstep and adl > _L_MOVED:
+                elif bstep and adl > _L_REFIT:
                     # the pulse before saw the step and had no answer: the pair is on one skin, refit
                     v[_V_RFT] = int(self.refit_cp(FAST_MODEL_CP_ABOVE))
                 elif rft and adl <= _L_MOVED:

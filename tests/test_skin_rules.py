@@ -41,8 +41,9 @@ def study_run(seed, k, board="real", sweeps=10, scope=False):
     return rows, target
 
 
-@pytest.mark.parametrize("case", CASES, ids=[f"update {c[0]}" for c in CASES])
-def test_a_model_rise_is_at_most_16_paper_steps_even_when_the_step_is_large(case):
+def _largest_rise(case):
+    """One of the review's loops through the core: the largest model rise in paper steps, each
+    checked against rule 5's cap."""
     v = [int(w) for w in case[1:]]
     c = sc.Controller(*v[0:5])
     c.calibrate(*v[5:10])
@@ -59,7 +60,21 @@ def test_a_model_rise_is_at_most_16_paper_steps_even_when_the_step_is_large(case
             # 2**FAST_MODEL_RAISE_LOG2 paper steps, within the pulse's resolution (1 uA, 1 us)
             assert q - q_k <= 16 * step + c.i_ua + c.t_us, (i_k, t_k, rp, c.i_ua, c.t_us, (q - q_k) / step)
             worst = max(worst, (q - q_k) / step)
-    assert worst > 8, worst  # the loop does reach the model's large rises (it tests the cap)
+    return worst
+
+
+@pytest.mark.parametrize("case", CASES, ids=[f"update {c[0]}" for c in CASES])
+def test_a_model_rise_is_at_most_16_paper_steps_even_when_the_step_is_large(case):
+    _largest_rise(case)
+
+
+def test_the_review_loops_reach_the_caps_range():
+    # they can fail the cap only if they rise by more than 8 paper steps somewhere: three of the four
+    # still do (16.1, 16.1, 16.0 paper steps: the cap within the pulse's resolution); the loop of
+    # update 186 did too until rule 4 refitted Cp only on a move of I by 1/8 octave or more
+    # (session 29; before, 1/32): it now rises by 2.7 paper steps at most
+    rises = sorted(_largest_rise(c) for c in CASES)
+    assert len(rises) == 4 and rises[1] > 8, rises
 
 
 def test_gel_coming_off_is_not_left_to_the_model_free_creep():
