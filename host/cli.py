@@ -883,50 +883,148 @@ def cmd_fit(a) -> int:
 
 
 def cmd_skin(a) -> int:
+    args, tau = _skin_fit(a.file, a.send)
+    if a.send:
+        Commands().set_skin(*args, _channel(a), tau)  # (a value out of range: one line before the device is opened)
+        with open_transport(a.device) as t:
+            _send_skin(Device(t), args, _channel(a), tau, a.device)
+    return 0
+
+
+def _skin_fit(path, send: bool) -> tuple[tuple, int]:
+    """`skin`'s fit of a pulses or sweeps CSV, said: (set_skin's args, rule 7's tau gain)."""
     from . import skin
 
-    sweeps = skin.load_sweeps(a.file)
+    sweeps = skin.load_sweeps(path)
+    if len(sweeps) > 1 and len(sweeps[-1]) < len(sweeps[0]) and \
+            [p[:2] for p in sweeps[-1]] == [p[:2] for p in sweeps[0][:len(sweeps[-1])]]:
+        say(f"{path}: the last sweep has {len(sweeps[-1])} of its {len(sweeps[0])} pulses (an interrupted "
+            "recording): left out")
+        sweeps = sweeps[:-1]
     if len(sweeps) > 1:  # repeated sweeps: the averaged fit, its uncertainty, and whether to send it
         i0, t0 = int(sweeps[0][0][0]), int(sweeps[0][0][1])
         f = skin.fit_sweeps(sweeps, i0, t0)
         m = f.model
-        say(f"{a.file}: {f.sweeps} sweeps averaged: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), "
+        say(f"{path}: {f.sweeps} sweeps averaged: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), "
             f"Cp {m.cp_pf} pF; Rp shape known to {f.shape_sd:.2%} (1 sd) around I0 {i0} uA, T0 {t0} us; "
             f"worst misfit {m.worst_misfit:.3%}")
         if not f.trusted:
-            say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if a.send else ""))
+            say(f"not trusted: {f.why}; MODE_FAST runs model-free" + (" (the device's model is removed)" if send else ""))
             if f.shape_sd > skin.TRUST_SHAPE_SD:
                 if (n := skin.sweeps_for_trust(f)) is not None:
                     say(f"more sweeps narrow the shape's uncertainty (about 1/sqrt(n)): about {n} in all should bring "
                         f"it within {skin.TRUST_SHAPE_SD:.0%}; record {n - f.sweeps} more of the same pulses on this "
-                        "electrode and fit them all again (docs/calibration.md)")
+                        "electrode and fit them all again (`steadytouch sweep --more`, docs/calibration.md)")
                 else:
                     say(f"more sweeps would not help enough: it would take more than {skin.SWEEPS_MOST} to bring it "
                         f"within {skin.TRUST_SHAPE_SD:.0%}; this electrode's Rp is read too noisily for a model "
                         "(check the contact and the leads, docs/calibration.md)")
         args = f.args()
-        tau = _skin_tau(a.file, f.model) if f.trusted else sc.SKIN_TAU_OFF
+        tau = _skin_tau(path, f.model) if f.trusted else sc.SKIN_TAU_OFF
     else:
         m = skin.fit(sweeps[0])
-        say(f"{a.file}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
+        say(f"{path}: Rs {m.rs_ohm} ohm, beta {m.beta:.4f} (Q.16 {m.beta_q16}), Cp {m.cp_pf} pF; "
             f"worst misfit {m.worst_misfit:.3%} over the pulses")
         if m.worst_misfit > 0.02:
             say("warning: the model misses some pulses by more than 2 %: MODE_FAST's model jumps will be rough")
         say("one sweep: its uncertainty is unknown; repeated sweeps (a `sweep` column) let the fit judge itself")
         args = m.args()
         tau = sc.SKIN_TAU_OFF
-        if skin.load_taus(a.file) is not None:
+        if skin.load_taus(path) is not None:
             say("tau not used (rule 7): its gain is measured only on repeated sweeps the model is trusted on")
-    if a.send:
-        Commands().set_skin(*args, _channel(a), tau)  # (a value out of range: one line before the device is opened)
-        with open_transport(a.device) as t:
-            d = Device(t)
-            if tau != sc.SKIN_TAU_OFF and not (i := d.info()).reports_tau:  # (its SET_SKIN ignores the gain's bytes)
-                say(f"{a.device}: firmware {i.firmware} does not read tau (rule 7: firmware 0.5.0 on, `steadytouch "
-                    "flash`): the model is sent without the gain")
-                tau = sc.SKIN_TAU_OFF
-            ack = d.skin(*args, ch=_channel(a), tau_q16=tau)
-            say(f"{a.device}: {ack.words()}")
+    return args, tau
+
+
+def _send_skin(d: Device, args, ch, tau: int, url: str) -> None:
+    """SET_SKIN on an open device, said (a firmware that does not read tau gets the model without the gain)."""
+    if tau != sc.SKIN_TAU_OFF and not (i := d.info()).reports_tau:  # (its SET_SKIN ignores the gain's bytes)
+        say(f"{url}: firmware {i.firmware} does not read tau (rule 7: firmware 0.5.0 on, `steadytouch "
+            "flash`): the model is sent without the gain")
+        tau = sc.SKIN_TAU_OFF
+    ack = d.skin(*args, ch=ch, tau_q16=tau)
+    say(f"{url}: {ack.words()}")
+
+
+def cmd_sweep(a) -> int:
+    """Calibration sweeps on one channel (host/sweep.py), written as read; then `skin`'s fit, --send sets it."""
+    from . import skin
+    from . import sweep as S
+
+    lo, hi = S.SWEEPS_RANGE
+    if not lo <= a.sweeps <= hi:
+        raise ValueError(f"--sweeps {a.sweeps} out of range: {lo}..{hi} (3 or more tell the fit's uncertainty; "
+                         f"{skin.RECOMMENDED_SWEEPS} recommended)")
+    for k in ("i0_ua", "t0_us"):
+        v = getattr(a, k)
+        if v is not None and not 1 <= v <= (sc.I_LIMIT_UA if k == "i0_ua" else 10**6):
+            raise ValueError(f"--{k.replace('_', '-')} {v} out of range: 1..{sc.I_LIMIT_UA if k == 'i0_ua' else 10**6}")
+    out = Path(a.csv)
+    if a.more:
+        if not out.is_file():
+            raise FileProblem(f"{out}: --more adds sweeps to a file `sweep` wrote; there is none")
+        have = skin.load_sweeps(out)
+        first, (i0, t0) = len(have), (int(have[0][0][0]), int(have[0][0][1]))
+        if a.i0_ua not in (None, i0) or a.t0_us not in (None, t0):
+            raise ValueError(f"--more: {out} holds sweeps of {i0} uA x {t0} us; more must be of the same pulses")
+    else:
+        refuse_existing([out], a.overwrite, "choose another file, or --more to add sweeps to it")
+        first, i0, t0 = 0, a.i0_ua, a.t0_us
+    ch = a.channel
+    with open_transport(a.device) as t:
+        d = Device(t)
+        info = d.info()
+        _warn_vmon(info)
+        if not 0 <= ch < info.n_channels:
+            raise ValueError(d._no_such_channel("--channel", ch))
+        cal = d.calibration(ch)
+        if i0 is None or t0 is None:
+            if not cal.calibrated:
+                raise ValueError(f"sweep needs --i0-ua and --t0-us: channel {ch} is not calibrated (its operating "
+                                 "pulse is the sweep's centre)")
+            i0, t0 = i0 or cal.i0_ua, t0 or cal.t0_us
+        pts = S.points(i0, t0, info)
+        say(f"sweep on {a.device}, channel {ch}: {len(pts)} pulses on the mE curve of {i0} uA x {t0} us "
+            f"({min(p[1] for p in pts)}..{max(p[1] for p in pts)} us), {a.sweeps} sweeps"
+            f"{f' after the {first} in {out}' if first else ''}"
+            f"{f', more while the fit asks (up to {skin.SWEEPS_MOST} in all)' if a.until_trusted else ''}; "
+            "every channel is disarmed first; the mode and this channel's calibration are put back after (disarmed)")
+        d.disarm()
+        done = first
+        try:
+            d.mode(sc.MODE_OPEN_LOOP)
+            with open(out, "a" if first else "w") as f:
+                if not first:
+                    f.write(",".join(S.FIELDS) + "\n")
+                want = first + a.sweeps
+                while True:
+                    for k in range(done, want):
+                        S.run(d, ch, pts, 1, f, first=k)
+                        done += 1
+                        say(f"  sweep {k + 1} of {want}: {len(pts)} pulses read")
+                    fit = skin.fit_sweeps(skin.load_sweeps(out), i0, t0)
+                    n = skin.sweeps_for_trust(fit) if a.until_trusted else None
+                    if n is None:
+                        break
+                    say(f"  the shape is known to {fit.shape_sd:.2%}: about {n} sweeps in all should bring it within "
+                        f"{skin.TRUST_SHAPE_SD:.0%}; {n - done} more")
+                    want = n
+        except KeyboardInterrupt:
+            say(f"sweep: interrupted after {done} whole sweeps; every reading taken is in {out} "
+                "(`steadytouch skin` leaves an unfinished last sweep out; `sweep --more` adds to the file)")
+            raise
+        finally:
+            try:
+                d.disarm()
+                d.mode(info.mode)
+                if cal.calibrated:
+                    d.calibrate(cal.i0_ua, cal.t0_us, cal.x_star_ohm, cal.y_star_pc, ch=ch)
+            except (DeviceError, TransportError) as e:
+                say(f"{a.device}: could not put the mode and channel {ch}'s calibration back ({e}): set them again "
+                    "(`steadytouch mode`, `steadytouch calibrate`) before arming")
+        say(f"wrote {done - first} sweeps to {out} ({done} in all)")
+        args, tau = _skin_fit(out, a.send)
+        if a.send:
+            _send_skin(d, args, ch, tau, a.device)
     return 0
 
 
@@ -1204,6 +1302,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("file", help="CSV with i_ua, t_us, rp_ohm per pulse (one person, one site)")
     s.add_argument("--send", action="store_true", help="send the fitted model to the device (disarmed)")
     s.add_argument("--channel", type=int, choices=[0, 1, 2, 3], help="channel (default: all)")
+    s = add("sweep", cmd_sweep, "measure the calibration sweeps MODE_FAST's electrode model is fitted to, on one "
+            "channel with the electrodes on; then fit them (as `skin`); --send sets the model",
+            "  steadytouch sweep sweeps.csv --channel 0 --i0-ua 1000 --t0-us 1000 --device sim://steady\n"
+            "  steadytouch sweep sweeps.csv --channel 0 --until-trusted --send --device hid://1209:0001\n"
+            "  steadytouch sweep sweeps.csv --channel 0 --more --sweeps 10   (add to the file, fit them all)")
+    s.add_argument("csv", help="the CSV to write (sweep, i_ua, t_us, rp_ohm, ltau_q16: a row per pulse, as read)")
+    s.add_argument("--channel", type=int, default=0, help="the channel whose electrodes to sweep (default 0)")
+    s.add_argument("--i0-ua", type=int, default=None, help="the operating pulse's current (default: the channel's "
+                   "calibration)")
+    s.add_argument("--t0-us", type=int, default=None, help="the operating pulse's duration (default: the channel's "
+                   "calibration)")
+    s.add_argument("--sweeps", type=int, default=30, help="sweeps of the 11 pulses (default 30: 330 pulses)")
+    s.add_argument("--until-trusted", action="store_true", help="then more, as long as the fit's shape is not known "
+                   "to 1 %% and more sweeps can bring it there (skin.sweeps_for_trust; at most 60 in all)")
+    s.add_argument("--more", action="store_true", help="add the sweeps to CSV (written by an earlier sweep)")
+    s.add_argument("--send", action="store_true", help="send the fitted model to the device (nothing when it is not "
+                   "trusted: the device's model is removed)")
+    s.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     s = add("validate", cmd_validate, "r2 of participant-chosen points against the controller's lines (Exp. 2)",
             "  steadytouch validate exp2.csv --calibration out/calibration.json", device=False)
     s.add_argument("file")
