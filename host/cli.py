@@ -896,11 +896,13 @@ def _skin_fit(path, send: bool) -> tuple[tuple, int]:
     from . import skin
 
     sweeps = skin.load_sweeps(path)
-    if len(sweeps) > 1 and len(sweeps[-1]) < len(sweeps[0]) and \
-            [p[:2] for p in sweeps[-1]] == [p[:2] for p in sweeps[0][:len(sweeps[-1])]]:
-        say(f"{path}: the last sweep has {len(sweeps[-1])} of its {len(sweeps[0])} pulses (an interrupted "
-            "recording): left out")
-        sweeps = sweeps[:-1]
+    if len(sweeps) > 1:  # a sweep cut short (an interrupted `sweep`, then `sweep --more`): left out, said
+        full = [p[:2] for p in max(sweeps, key=len)]
+        cut = [k for k, w in enumerate(sweeps) if len(w) < len(full) and [p[:2] for p in w] == full[:len(w)]]
+        for k in cut:
+            say(f"{path}: sweep {k + 1} of {len(sweeps)} has {len(sweeps[k])} of its {len(full)} pulses (an "
+                "interrupted recording): left out")
+        sweeps = [w for k, w in enumerate(sweeps) if k not in cut]
     if len(sweeps) > 1:  # repeated sweeps: the averaged fit, its uncertainty, and whether to send it
         i0, t0 = int(sweeps[0][0][0]), int(sweeps[0][0][1])
         f = skin.fit_sweeps(sweeps, i0, t0)
@@ -970,7 +972,10 @@ def cmd_sweep(a) -> int:
         refuse_existing([out], a.overwrite, "choose another file, or --more to add sweeps to it")
         first, i0, t0 = 0, a.i0_ua, a.t0_us
     ch = a.channel
-    with open_transport(a.device) as t:
+    url = a.device
+    if url.startswith("sim://") and "frames=" not in url:  # the scenario's own length is too short for the sweeps:
+        url += ("&" if "?" in url else "?") + f"frames={skin.SWEEPS_MOST * 12 * 25}"  # 0.5 s a pulse, 60 sweeps
+    with open_transport(url) as t:
         d = Device(t)
         info = d.info()
         _warn_vmon(info)
@@ -1010,7 +1015,7 @@ def cmd_sweep(a) -> int:
                     want = n
         except KeyboardInterrupt:
             say(f"sweep: interrupted after {done} whole sweeps; every reading taken is in {out} "
-                "(`steadytouch skin` leaves an unfinished last sweep out; `sweep --more` adds to the file)")
+                "(`steadytouch skin` leaves a sweep cut short out; `sweep --more` adds to the file)")
             raise
         finally:
             try:

@@ -110,5 +110,11 @@ def test_skin_leaves_out_an_unfinished_last_sweep(tmp_path):
     f.write_text("\n".join(lines) + "\n")
     p = run("skin", str(f))
     assert p.returncode == 0, p.stdout + p.stderr
-    assert "the last sweep has 4 of its 11 pulses (an interrupted recording): left out" in p.stdout
+    assert "sweep 4 of 4 has 4 of its 11 pulses (an interrupted recording): left out" in p.stdout
     assert "3 sweeps averaged" in p.stdout
+    # then `sweep --more` adds whole sweeps after the cut one
+    more = [f"{k},{i},{t},{round(e.rp_kohm(i, t) * 1000)}" for k in (4, 5) for i, t in pts]
+    f.write_text("\n".join(lines + more) + "\n")
+    p = run("skin", str(f))
+    assert p.returncode == 0 and "sweep 4 of 6 has 4 of its 11 pulses" in p.stdout and "5 sweeps averaged" in p.stdout, \
+        p.stdout + p.stderr
