@@ -896,13 +896,11 @@ def _skin_fit(path, send: bool) -> tuple[tuple, int]:
     from . import skin
 
     sweeps = skin.load_sweeps(path)
-    if len(sweeps) > 1:  # a sweep cut short (an interrupted `sweep`, then `sweep --more`): left out, said
-        full = [p[:2] for p in max(sweeps, key=len)]
-        cut = [k for k, w in enumerate(sweeps) if len(w) < len(full) and [p[:2] for p in w] == full[:len(w)]]
-        for k in cut:
-            say(f"{path}: sweep {k + 1} of {len(sweeps)} has {len(sweeps[k])} of its {len(full)} pulses (an "
-                "interrupted recording): left out")
-        sweeps = [w for k, w in enumerate(sweeps) if k not in cut]
+    whole, cut = skin.whole_sweeps(sweeps)  # a sweep cut short (an interrupted `sweep`, then `sweep --more`): left out
+    for k in cut:
+        say(f"{path}: sweep {k + 1} of {len(sweeps)} has {len(sweeps[k])} of its {len(whole[0])} pulses (an "
+            "interrupted recording): left out")
+    sweeps = whole
     if len(sweeps) > 1:  # repeated sweeps: the averaged fit, its uncertainty, and whether to send it
         i0, t0 = int(sweeps[0][0][0]), int(sweeps[0][0][1])
         f = skin.fit_sweeps(sweeps, i0, t0)
@@ -1006,7 +1004,7 @@ def cmd_sweep(a) -> int:
                         S.run(d, ch, pts, 1, f, first=k)
                         done += 1
                         say(f"  sweep {k + 1} of {want}: {len(pts)} pulses read")
-                    fit = skin.fit_sweeps(skin.load_sweeps(out), i0, t0)
+                    fit = skin.fit_sweeps(skin.whole_sweeps(skin.load_sweeps(out))[0], i0, t0)
                     n = skin.sweeps_for_trust(fit) if a.until_trusted else None
                     if n is None:
                         break

@@ -294,6 +294,16 @@ def load_taus(path) -> list[tuple[float, float, int]] | None:
     return out
 
 
+def whole_sweeps(sweeps) -> tuple[list, list[int]]:
+    """The sweeps without those cut short (an interrupted `steadytouch sweep`: the first pulses of a whole
+    sweep, fewer of them), and the indices of those left out."""
+    if len(sweeps) < 2:
+        return sweeps, []
+    full = [p[:2] for p in max(sweeps, key=len)]
+    cut = [k for k, w in enumerate(sweeps) if len(w) < len(full) and [p[:2] for p in w] == full[:len(w)]]
+    return [w for k, w in enumerate(sweeps) if k not in cut], cut
+
+
 def load_sweeps(path) -> list[list[tuple[float, float, float]]]:
     """Repeated sweeps from a CSV with i_ua, t_us, rp_ohm and a `sweep` column (rows of
     one sweep share its value; every sweep the same pulses in the same order). Without
