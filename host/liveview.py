@@ -87,7 +87,17 @@ class LivePlot:
 
             self.plt = plt
             # not plt.ion(): interactive mode redraws the whole stale figure after every change
-            self.fig = plt.figure(figsize=FIG_IN, dpi=DPI)
+            where = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+            try:
+                self.fig = plt.figure(figsize=FIG_IN, dpi=DPI)
+            except ImportError as e:  # DISPLAY set, but no server answers there (matplotlib: "headless")
+                raise RuntimeError(f"--plot needs a display: {where} is set but none could be opened ({e}); "
+                                   "the terminal view works without one") from None
+            if plt.get_backend().lower() == "agg":  # pyplot fell back to drawing off-screen: no window would open
+                plt.close(self.fig)
+                raise RuntimeError(f"--plot needs a display: {where} is set but none could be opened (matplotlib "
+                                   "fell back to its off-screen backend: no display answered, or this Python has no "
+                                   "tkinter); the terminal view works without one")
             try:
                 self.fig.canvas.manager.set_window_title("steadytouch monitor")
             except AttributeError:

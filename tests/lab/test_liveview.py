@@ -111,6 +111,18 @@ def _figure_area(img):
     return xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
 
 
+def test_monitor_plot_on_a_display_that_does_not_answer_is_one_line():
+    # DISPLAY names a server that is not there (the CI flake of session 29: Xvfb not yet accepting): one line, exit 2
+    env = dict(os.environ, DISPLAY=":987", MPLBACKEND="TkAgg")
+    env.pop("WAYLAND_DISPLAY", None)
+    exe = Path(sys.executable).parent / "steadytouch"
+    p = subprocess.run([str(exe), "monitor", "--plot", "--seconds", "1", "--device", "sim://steady"], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "--plot needs a display: :987 is set but none could be opened" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "Traceback" not in p.stderr
+
+
 def test_monitor_plot_draws_on_a_real_display(tmp_path):
     from PIL import ImageGrab
 
@@ -121,6 +133,15 @@ def test_monitor_plot_draws_on_a_real_display(tmp_path):
     xvfb, display = _xvfb()
     mon = None
     try:
+        ready = time.monotonic() + 20  # a loaded machine: the server may take a moment to accept clients
+        while True:
+            try:
+                ImageGrab.grab(xdisplay=display)
+                break
+            except OSError:
+                if time.monotonic() > ready:
+                    raise
+                time.sleep(0.2)
         env = dict(os.environ, DISPLAY=display, MPLBACKEND="TkAgg")
         exe = Path(sys.executable).parent / "steadytouch"
         # 3000 frames: 60 s of device time (steady alone is 10 s; on a busy machine the screenshots can take longer)
