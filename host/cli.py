@@ -1001,7 +1001,7 @@ def cmd_sweep(a) -> int:
                 want = first + a.sweeps
                 while True:
                     for k in range(done, want):
-                        S.run(d, ch, pts, 1, f, first=k)
+                        S.run(d, ch, pts, k, f)
                         done += 1
                         say(f"  sweep {k + 1} of {want}: {len(pts)} pulses read")
                     fit = skin.fit_sweeps(skin.whole_sweeps(skin.load_sweeps(out))[0], i0, t0)

@@ -66,16 +66,11 @@ def read_point(d, ch: int, i_ua: int, t_us: int, timeout_s: float = 5.0) -> tupl
         return rep.rp_ohm, rep.ltau_q16
 
 
-def run(d, ch: int, pts, n_sweeps: int, out, first: int = 0, progress=None) -> int:
-    """n_sweeps sweeps of pts on channel ch (the device in open loop, disarmed between points), each
-    reading written to the open CSV `out` at once (flushed: an interruption keeps it). Sweeps are
-    numbered from `first`. Returns the number of sweeps completed."""
-    for k in range(first, first + n_sweeps):
-        with d.live():  # keep-alive while pulsing; DISARM however it ends
-            for j, (i, t) in enumerate(pts):
-                rp, lt = read_point(d, ch, i, t)
-                out.write(f"{k},{i},{t},{rp},{lt}\n")
-                out.flush()
-                if progress:
-                    progress(k, j)
-    return n_sweeps
+def run(d, ch: int, pts, k: int, out) -> None:
+    """Sweep number k of pts on channel ch (the device in open loop, disarmed between points), each reading
+    written to the open CSV `out` at once (flushed: an interruption keeps it)."""
+    with d.live():  # keep-alive while pulsing; DISARM however it ends
+        for i, t in pts:
+            rp, lt = read_point(d, ch, i, t)
+            out.write(f"{k},{i},{t},{rp},{lt}\n")
+            out.flush()
