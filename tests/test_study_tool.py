@@ -58,3 +58,39 @@ def test_bad_arguments_are_named_with_their_range(args, says):
     with pytest.raises(SystemExit) as e:
         study.main(args)
     assert says in str(e.value), e.value
+
+
+def _attacks():
+    have = sys.modules.get("bench_attacks")
+    if have is None:
+        sp = importlib.util.spec_from_file_location("bench_attacks", ROOT / "bench" / "attacks.py")
+        have = importlib.util.module_from_spec(sp)
+        sp.loader.exec_module(have)
+        sys.modules["bench_attacks"] = have
+    return have
+
+
+def test_the_attack_families_have_their_cases_and_a_run_writes_one_record_a_case(tmp_path, capsys):
+    attacks = _attacks()
+    counts = {f: len(list(attacks.cases(f, bench))) for f in attacks.FAMILIES}
+    assert counts == {"badread": 44, "smallpeel": 24, "second": 30, "ramp": 8}
+    for name, ev, n, bad, a, b in attacks.cases("badread", bench):  # each read lands inside its window, after its step
+        assert all(a <= p < b <= n for p in bad), name
+    out = tmp_path / "ramp.jsonl"
+    attacks.main(["ramp", "--seeds", "31", "--electrodes", "1", "--out", str(out)])
+    recs = [json.loads(ln) for ln in out.read_text().splitlines()]
+    assert [r["case"].split("/", 2)[2] for r in recs] == [c[0] for c in attacks.cases("ramp", bench)]
+    assert all(r["max"] is not None and r["min"] <= r["max"] for r in recs)
+    attacks.main(["ramp", "--seeds", "31", "--electrodes", "1", "--compare", str(out)])  # the same draws: no case moved
+    text = capsys.readouterr().out
+    assert "ramp: 8 cases" in text and "on the same cases: 8 cases" in text and "highest" in text
+    assert "->" not in text
+
+
+@pytest.mark.parametrize("args,says", [(["ramp", "--electrodes", "0"], "--electrodes 0: accepted 1 to 1000"),
+                                       (["second", "--exact", "0.5"], "--exact 0.5: accepted 0 to 0.1"),
+                                       (["ramp", "--seeds", "x"], "--seeds")])
+def test_attacks_refuses_bad_arguments_by_name(args, says):
+    with pytest.raises(SystemExit) as e:
+        _attacks().main(args)
+    assert says in str(e.value)
